@@ -1,0 +1,128 @@
+"""Env-step throughput against the bare RK4 model, side by side in one process.
+
+Each case is a jitted ``lax.scan`` of ``--steps`` steps over ``--envs`` vmapped
+vehicles.  Compile time is reported apart from run time; run time is the best of
+``--repeats`` runs, and the cases are interleaved so machine noise hits all alike.
+
+    python benchmarks/env_throughput.py             # 1024 envs x 1000 steps
+    python benchmarks/env_throughput.py --quick     # smoke run (CI)
+
+Cases:
+  rk4          bare model: vmapped rk4_step with fixed controls (the floor)
+  env_nominal  env.step on training-mixture tracks, no wind, no observation noise
+  env_paper    env.step with the paper preset's training wind (OU, one normal draw per step)
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import os
+import platform
+import time
+
+import jax
+
+from ttd3_jax.dynamics import rk4_step
+from ttd3_jax.env import TrackingEnv, action_to_control, make_config
+
+
+def rk4_case(cfg, n_envs, n_steps):
+    keys = jax.random.split(jax.random.PRNGKey(0), n_envs)
+    env = TrackingEnv(dataclasses.replace(cfg, wind_sigma=0.0))
+    quad0 = jax.vmap(env.reset)(keys).pipeline_state.quad
+    a = jax.random.uniform(jax.random.PRNGKey(1), (n_envs, 4), minval=-0.05, maxval=0.05)
+    u = action_to_control(cfg, a.at[:, 0].add(0.4715))
+
+    def run(quad):
+        step = jax.vmap(lambda x, u: rk4_step(cfg.quad, x, u, cfg.dt))
+        x, _ = jax.lax.scan(lambda x, _: (step(x, u), None), quad, None, length=n_steps)
+        return x.p.sum()
+
+    return run, quad0
+
+
+def env_case(cfg, n_envs, n_steps):
+    env = TrackingEnv(cfg)
+    keys = jax.random.split(jax.random.PRNGKey(0), n_envs)
+    s0 = jax.jit(jax.vmap(env.reset))(keys)
+    a = jax.random.uniform(jax.random.PRNGKey(1), (n_envs, 4), minval=-0.05, maxval=0.05)
+    a = a.at[:, 0].add(0.4715)
+
+    def run(s):
+        step = jax.vmap(env.step)
+        s, r = jax.lax.scan(lambda s, _: (step(s, a), s.reward.sum()), s, None, length=n_steps)
+        return r.sum()
+
+    return run, s0
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--envs", type=int, default=1024)
+    ap.add_argument("--steps", type=int, default=1000)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--quick", action="store_true", help="tiny sizes, to keep the script alive in CI")
+    ap.add_argument("--out", default="benchmarks/results/env_throughput.jsonl")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.envs, args.steps, args.repeats = 64, 50, 1
+    if min(args.envs, args.steps, args.repeats) < 1:
+        ap.error("--envs, --steps and --repeats must be >= 1")
+
+    base = make_config("paper")
+    cases = {
+        "rk4": rk4_case(base, args.envs, args.steps),
+        "env_nominal": env_case(dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps),
+        "env_paper": env_case(base, args.envs, args.steps),
+    }
+    compiled, compile_s = {}, {}
+    for name, (fn, x0) in cases.items():
+        t0 = time.perf_counter()
+        compiled[name] = jax.jit(fn).lower(x0).compile()
+        compile_s[name] = time.perf_counter() - t0
+        jax.block_until_ready(compiled[name](x0))  # warm-up
+    best = {name: float("inf") for name in cases}
+    for _ in range(args.repeats):
+        for name, (_, x0) in cases.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(compiled[name](x0))
+            best[name] = min(best[name], time.perf_counter() - t0)
+
+    n = args.envs * args.steps
+    dev = jax.devices()[0]
+    print(
+        f"device={dev.platform} ({dev.device_kind}) cpus={os.cpu_count()} envs={args.envs} steps={args.steps}"
+    )
+    print(f"{'case':<12} {'compile s':>9} {'run s':>8} {'env-steps/s':>12} {'x rk4':>6}")
+    rows = []
+    for name in cases:
+        sps = n / best[name]
+        ratio = best[name] / best["rk4"]
+        print(f"{name:<12} {compile_s[name]:>9.2f} {best[name]:>8.4f} {sps:>12.3e} {ratio:>6.2f}")
+        rows.append(
+            dict(case=name, compile_s=compile_s[name], run_s=best[name], steps_per_s=sps, ratio_vs_rk4=ratio)
+        )
+    record = dict(
+        date=datetime.datetime.now().isoformat(timespec="seconds"),
+        machine=platform.machine(),
+        cpus=os.cpu_count(),
+        device=dev.device_kind,
+        jax=jax.__version__,
+        envs=args.envs,
+        steps=args.steps,
+        quick=args.quick,
+        rows=rows,
+    )
+    if args.out:
+        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+        with open(args.out, "a") as fh:
+            fh.write(json.dumps(record) + "\n")
+        print(f"appended to {args.out}")
+    return record
+
+
+if __name__ == "__main__":
+    main()

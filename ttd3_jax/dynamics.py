@@ -1,0 +1,276 @@
+"""Quadrotor rigid-body model with thrust + body-rate inputs, integrated with RK4.
+
+Conventions (spec §2.1, rows D1-D7): world frame z up, gravity subtracted,
+Hamilton quaternions stored scalar first ``(qw, qx, qy, qz)``, body rates in the
+body frame.  Everything here is a pure function of arrays, so it can be
+``jit``-ed, ``vmap``-ed and differentiated (the NMPC differentiates through
+:func:`rk4_step`).
+
+Shapes use ``...`` for any leading batch dimensions; the functions are written
+for a single vehicle and batched with ``jax.vmap``.
+
+Control ``u`` (shape ``(4,)``) is in physical units:
+``u[0]`` collective thrust (N under ``thrust_units="newton"``, m/s^2 under
+``"mass_normalized"``), ``u[1:4]`` commanded body rates (rad/s).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+RATE_MODELS = ("instant", "first_order", "torque")
+THRUST_UNITS = ("newton", "mass_normalized")
+
+
+@struct.dataclass
+class QuadParams:
+    """Physical parameters (a pytree: numeric fields are leaves, so they can be vmapped).
+
+    Build it with :meth:`QuadParams.create`, which validates every value.  The
+    two string fields are static (part of the tree structure).
+    """
+
+    mass: float = 1.5  # kg
+    gravity: float = 9.81  # m/s^2, subtracted along world z
+    thrust_min: float = 0.0  # N ("newton") or m/s^2 ("mass_normalized")
+    thrust_max: float = 20.0  # same unit as thrust_min
+    rate_min: float = -6.0  # rad/s, every body axis
+    rate_max: float = 6.0  # rad/s, every body axis
+    # Only used by the "first_order" / "torque" rate models (spec D4).
+    tau_rate: float = 0.03  # s, first-order body-rate time constant
+    inertia: tuple = (0.029125, 0.029125, 0.055225)  # kg m^2, diagonal of J
+    k_rate: tuple = (20.0, 20.0, 10.0)  # 1/s, rate-loop gain K_w
+    torque_max: tuple = (2.2, 1.3, 0.6)  # N m, |eta| bound per axis
+    rate_model: str = struct.field(pytree_node=False, default="instant")
+    thrust_units: str = struct.field(pytree_node=False, default="newton")
+
+    @classmethod
+    def create(cls, **overrides) -> QuadParams:
+        """Validated constructor. Raises ``ValueError`` naming the bad field."""
+        params = cls(**overrides)
+        validate_params(params)
+        return params
+
+    @property
+    def hover_thrust(self) -> float:
+        """Thrust that balances gravity, in this model's thrust unit."""
+        return self.gravity * (self.mass if self.thrust_units == "newton" else 1.0)
+
+
+def _as_float(name: str, value) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"QuadParams.{name} must be a number, got {value!r}") from None
+    if not math.isfinite(out):
+        raise ValueError(f"QuadParams.{name} must be finite, got {value!r}")
+    return out
+
+
+def validate_params(p: QuadParams) -> None:
+    """Check every field of ``p`` at the Python level (never call under ``jit``)."""
+    if p.rate_model not in RATE_MODELS:
+        raise ValueError(f"QuadParams.rate_model must be one of {RATE_MODELS}, got {p.rate_model!r}")
+    if p.thrust_units not in THRUST_UNITS:
+        raise ValueError(f"QuadParams.thrust_units must be one of {THRUST_UNITS}, got {p.thrust_units!r}")
+    for name in ("mass", "gravity", "tau_rate"):
+        if _as_float(name, getattr(p, name)) <= 0:
+            raise ValueError(f"QuadParams.{name} must be > 0, got {getattr(p, name)!r}")
+    for lo, hi in (("thrust_min", "thrust_max"), ("rate_min", "rate_max")):
+        vlo, vhi = _as_float(lo, getattr(p, lo)), _as_float(hi, getattr(p, hi))
+        if vlo >= vhi:
+            raise ValueError(f"QuadParams.{lo} must be < {hi}, got {lo}={vlo}, {hi}={vhi}")
+    if _as_float("thrust_min", p.thrust_min) < 0:
+        raise ValueError(f"QuadParams.thrust_min must be >= 0 (rotors only push), got {p.thrust_min}")
+    if not p.rate_min < 0 < p.rate_max:
+        raise ValueError(f"QuadParams body-rate range must contain 0, got [{p.rate_min}, {p.rate_max}] rad/s")
+    if p.hover_thrust >= p.thrust_max:
+        raise ValueError(
+            f"QuadParams.thrust_max={p.thrust_max} cannot lift the vehicle: hover needs "
+            f"{p.hover_thrust:.3f} ({p.thrust_units}); allowed range is thrust_max > hover thrust"
+        )
+    for name in ("inertia", "k_rate", "torque_max"):
+        vals = getattr(p, name)
+        if not isinstance(vals, (tuple, list)) or len(vals) != 3:
+            raise ValueError(f"QuadParams.{name} must have 3 entries (x, y, z), got {vals!r}")
+        for v in vals:
+            if _as_float(name, v) <= 0:
+                raise ValueError(f"QuadParams.{name} entries must be > 0, got {vals!r}")
+
+
+@struct.dataclass
+class QuadState:
+    """Vehicle state. ``p`` (3,) m and ``v`` (3,) m/s in the world frame,
+    ``q`` (4,) unit quaternion body->world (scalar first), ``w`` (3,) rad/s body rates."""
+
+    p: jax.Array
+    v: jax.Array
+    q: jax.Array
+    w: jax.Array
+
+    @classmethod
+    def hover(cls, p=(0.0, 0.0, 0.0), dtype=None) -> QuadState:
+        """At rest, level, at position ``p``."""
+        dtype = dtype or jnp.zeros(()).dtype
+        return cls(
+            p=jnp.asarray(p, dtype),
+            v=jnp.zeros(3, dtype),
+            q=jnp.array([1.0, 0.0, 0.0, 0.0], dtype),
+            w=jnp.zeros(3, dtype),
+        )
+
+
+# --------------------------------------------------------------------------- quaternions
+
+
+def quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Hamilton product ``a ⊗ b`` of scalar-first quaternions, shapes (..., 4)."""
+    aw, ax, ay, az = jnp.moveaxis(a, -1, 0)
+    bw, bx, by, bz = jnp.moveaxis(b, -1, 0)
+    return jnp.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conj(q: jax.Array) -> jax.Array:
+    """Conjugate (= inverse for unit quaternions), shape (..., 4)."""
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0], q.dtype)
+
+
+def quat_rotate(q: jax.Array, x: jax.Array) -> jax.Array:
+    """Rotate body-frame vector ``x`` (..., 3) into the world frame by unit ``q`` (..., 4)."""
+    zero = jnp.zeros_like(x[..., :1])
+    return quat_mul(quat_mul(q, jnp.concatenate([zero, x], -1)), quat_conj(q))[..., 1:]
+
+
+def quat_to_rotmat(q: jax.Array) -> jax.Array:
+    """Rotation matrix (..., 3, 3) of unit quaternion ``q`` (..., 4); columns are body axes in world."""
+    w, x, y, z = jnp.moveaxis(q, -1, 0)
+    return jnp.stack(
+        [
+            jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=-2,
+    )
+
+
+def quat_from_axis_angle(axis: jax.Array, angle: jax.Array) -> jax.Array:
+    """Unit quaternion for a rotation of ``angle`` rad about unit ``axis`` (3,)."""
+    half = 0.5 * angle
+    return jnp.concatenate([jnp.cos(half)[..., None], jnp.sin(half)[..., None] * axis], -1)
+
+
+def body_z(q: jax.Array) -> jax.Array:
+    """World-frame direction of the body z axis (thrust direction), shape (..., 3)."""
+    w, x, y, z = jnp.moveaxis(q, -1, 0)
+    return jnp.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], -1)
+
+
+def quat_rate(q: jax.Array, w: jax.Array) -> jax.Array:
+    """``q̇ = ½ Λ(ω) q`` (spec D2) with body rates ``w`` (3,): equals ``½ q ⊗ [0, ω]``."""
+    qw, qx, qy, qz = q[0], q[1], q[2], q[3]
+    wx, wy, wz = w[0], w[1], w[2]
+    return 0.5 * jnp.stack(
+        [
+            -wx * qx - wy * qy - wz * qz,
+            wx * qw + wz * qy - wy * qz,
+            wy * qw - wz * qx + wx * qz,
+            wz * qw + wy * qx - wx * qy,
+        ]
+    )
+
+
+# --------------------------------------------------------------------------- dynamics
+
+
+def collective_accel(params: QuadParams, thrust: jax.Array) -> jax.Array:
+    """Mass-normalised collective thrust c (m/s^2) from the thrust input in the model's unit."""
+    return thrust / params.mass if params.thrust_units == "newton" else thrust
+
+
+def rate_derivative(params: QuadParams, w: jax.Array, w_cmd: jax.Array) -> jax.Array:
+    """``ω̇`` (rad/s^2) for the ``first_order`` and ``torque`` rate models (spec D4)."""
+    if params.rate_model == "first_order":
+        return (w_cmd - w) / params.tau_rate
+    inertia = jnp.asarray(params.inertia, w.dtype)
+    gyro = jnp.cross(w, inertia * w)
+    eta = inertia * jnp.asarray(params.k_rate, w.dtype) * (w_cmd - w) + gyro
+    eta_max = jnp.asarray(params.torque_max, w.dtype)
+    eta = jnp.clip(eta, -eta_max, eta_max)
+    return (eta - gyro) / inertia
+
+
+def derivative(
+    params: QuadParams, x: QuadState, u: jax.Array, accel_ext: jax.Array | None = None
+) -> QuadState:
+    """Continuous-time ``ẋ = f(x, u)``.
+
+    Args:
+      x: state; u: (4,) control ``[thrust, ω_cmd]``; accel_ext: optional (3,) extra
+        world-frame acceleration in m/s^2 (wind, disturbances).
+    Under ``rate_model="instant"`` the commanded rate drives the attitude directly
+    and the stored ``w`` does not move (:func:`rk4_step` sets it to ``ω_cmd``).
+    """
+    c = collective_accel(params, u[0])
+    w_cmd = u[1:4]
+    g = jnp.asarray([0.0, 0.0, params.gravity], x.v.dtype)
+    v_dot = c * body_z(x.q) - g
+    if accel_ext is not None:
+        v_dot = v_dot + accel_ext
+    if params.rate_model == "instant":
+        w_att, w_dot = w_cmd, jnp.zeros_like(x.w)
+    else:
+        w_att, w_dot = x.w, rate_derivative(params, x.w, w_cmd)
+    return QuadState(p=x.v, v=v_dot, q=quat_rate(x.q, w_att), w=w_dot)
+
+
+def _axpy(a, dx: QuadState, x: QuadState) -> QuadState:
+    return jax.tree.map(lambda xi, di: xi + a * di, x, dx)
+
+
+def rk4_step(
+    params: QuadParams,
+    x: QuadState,
+    u: jax.Array,
+    dt: float,
+    accel_ext: jax.Array | None = None,
+    substeps: int = 1,
+    renormalize: bool = True,
+) -> QuadState:
+    """Advance ``x`` by ``dt`` seconds under zero-order-hold ``u`` (spec D7).
+
+    ``substeps`` RK4 steps of ``dt / substeps`` each; then, if ``renormalize``,
+    ``q`` is projected back to unit norm.  Under the ``instant`` rate model the
+    stored rates become ``ω_cmd``.
+    """
+    h = dt / substeps
+    for _ in range(substeps):  # static, small: unrolled
+        k1 = derivative(params, x, u, accel_ext)
+        k2 = derivative(params, _axpy(0.5 * h, k1, x), u, accel_ext)
+        k3 = derivative(params, _axpy(0.5 * h, k2, x), u, accel_ext)
+        k4 = derivative(params, _axpy(h, k3, x), u, accel_ext)
+        x = jax.tree.map(
+            lambda xi, a, b, c, d: xi + (h / 6.0) * (a + 2.0 * b + 2.0 * c + d), x, k1, k2, k3, k4
+        )
+    q = x.q / jnp.linalg.norm(x.q) if renormalize else x.q
+    w = u[1:4].astype(x.w.dtype) if params.rate_model == "instant" else x.w
+    return x.replace(q=q, w=w)
+
+
+def clip_control(params: QuadParams, u: jax.Array) -> jax.Array:
+    """Clip a physical control (4,) to the thrust and body-rate box."""
+    lo = jnp.stack([params.thrust_min, params.rate_min, params.rate_min, params.rate_min])
+    hi = jnp.stack([params.thrust_max, params.rate_max, params.rate_max, params.rate_max])
+    return jnp.clip(u, lo.astype(u.dtype), hi.astype(u.dtype))
