@@ -1,0 +1,96 @@
+"""Exploration-noise schedules: TD3's constant std and T-TD3's time-attenuating std.
+
+T-TD3 (spec §2.4, rows A1-A3, A5): after every critic update, with the minibatch
+rewards r_j,
+
+    δ = Σ_j (r_j − r_min) / (r_max − r_min)        (``delta_reduce="mean"`` divides by B)
+    σ = β·u_max·exp(−λ t) + (1 − β)·u_max·exp(−δ)
+
+where t counts episode-equivalents of collected transitions (``t_unit``), and σ is
+kept unchanged when r_max − r_min ≤ 1e-8.  TD3 is the same code with σ ≡ ``hp.sigma``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+SCHEDULES = ("time_attenuating", "constant", "linear")
+DELTA_REDUCES = ("sum", "mean")
+R_RANGES = ("batch", "running")
+T_UNITS = ("episode", "env_step", "update")
+
+
+@dataclasses.dataclass(frozen=True)
+class NoiseConfig:
+    """Static choices of the schedule (numeric values live in ``Hyper``)."""
+
+    schedule: str = "time_attenuating"
+    delta_reduce: str = "sum"  # A1
+    r_range: str = "batch"  # A2: min/max of the minibatch, or running extremes
+    t_unit: str = "episode"  # A3: t = transitions / episode_length, transitions, or updates
+    episode_length: int = 3000  # L_nom, transitions per nominal episode
+    sigma_is_variance: bool = False  # A5: N(0, σ) read as variance σ (std √σ)
+
+    def __post_init__(self):
+        for name, allowed in (
+            ("schedule", SCHEDULES),
+            ("delta_reduce", DELTA_REDUCES),
+            ("r_range", R_RANGES),
+            ("t_unit", T_UNITS),
+        ):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"NoiseConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
+        if not (isinstance(self.episode_length, int) and self.episode_length >= 1):
+            raise ValueError(
+                f"NoiseConfig.episode_length must be an integer >= 1, got {self.episode_length!r}"
+            )
+
+
+@struct.dataclass
+class NoiseState:
+    sigma: jax.Array  # current exploration σ (std unless sigma_is_variance)
+    r_min: jax.Array  # running reward extremes (r_range="running")
+    r_max: jax.Array
+
+
+def init(cfg: NoiseConfig, hp) -> NoiseState:
+    """σ starts at u_max for T-TD3 (Alg. 1), at ``hp.sigma`` otherwise."""
+    sigma = hp.u_max if cfg.schedule == "time_attenuating" else hp.sigma
+    f = jnp.float32
+    return NoiseState(
+        sigma=jnp.asarray(sigma, f), r_min=jnp.asarray(jnp.inf, f), r_max=jnp.asarray(-jnp.inf, f)
+    )
+
+
+def update(cfg: NoiseConfig, hp, ns: NoiseState, rewards: jax.Array, n_tr, n_upd, n_total) -> NoiseState:
+    """σ after one critic update on a minibatch with ``rewards`` (B,).
+
+    ``n_tr``: transitions collected so far; ``n_upd``: updates done; ``n_total``: the
+    run's transition budget (for ``linear``)."""
+    if cfg.schedule == "constant":
+        return ns.replace(sigma=jnp.asarray(hp.sigma, ns.sigma.dtype))
+    if cfg.schedule == "linear":
+        frac = jnp.clip(n_tr / n_total, 0.0, 1.0)
+        return ns.replace(sigma=(hp.sigma + (hp.sigma_end - hp.sigma) * frac).astype(ns.sigma.dtype))
+    b_min, b_max = jnp.min(rewards), jnp.max(rewards)
+    if cfg.r_range == "running":
+        r_min, r_max = jnp.minimum(ns.r_min, b_min), jnp.maximum(ns.r_max, b_max)
+    else:
+        r_min, r_max = b_min, b_max
+    span = r_max - r_min
+    norm = (rewards - r_min) / jnp.maximum(span, 1e-8)
+    delta = jnp.sum(norm) if cfg.delta_reduce == "sum" else jnp.mean(norm)
+    t = {"episode": n_tr / cfg.episode_length, "env_step": n_tr, "update": n_upd}[cfg.t_unit]
+    t = jnp.asarray(t, jnp.float32)
+    new = hp.beta * hp.u_max * jnp.exp(-hp.lam * t) + (1.0 - hp.beta) * hp.u_max * jnp.exp(-delta)
+    sigma = jnp.where(span > 1e-8, new, ns.sigma).astype(ns.sigma.dtype)
+    return NoiseState(sigma=sigma, r_min=r_min, r_max=r_max)
+
+
+def std(cfg: NoiseConfig, sigma: jax.Array) -> jax.Array:
+    """Standard deviation of the Gaussian exploration noise for a given σ."""
+    return jnp.sqrt(sigma) if cfg.sigma_is_variance else sigma

@@ -1,0 +1,451 @@
+"""T-TD3 / TD3 trainer: parallel envs, device replay buffer and updates in one ``lax.scan``.
+
+Read one transition top to bottom: :func:`_collect` steps the vmapped envs and
+builds a :class:`~ttd3_jax.buffer.Transition` (true next observation, ``terminated``
+apart from time-limit truncation) before auto-resetting finished envs;
+:func:`ttd3_jax.buffer.insert` writes it; :func:`_update` samples a minibatch and
+takes the critic step (:func:`ttd3_jax.losses.critic_loss`), the σ update
+(:mod:`ttd3_jax.noise`) and, every ``policy_delay`` updates, the actor step and
+the Polyak target update.
+
+Static settings (shapes, loop lengths, algorithm switches) live in the frozen
+:class:`TrainConfig`; numeric hyperparameters live in the :class:`Hyper` pytree, so a
+sweep over seeds and hyperparameters is a ``vmap`` of :meth:`Trainer.train`.
+
+CLI: ``python -m ttd3_jax.train --help``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from ttd3_jax import buffer as rb
+from ttd3_jax import noise as nz
+from ttd3_jax.env import PRESETS as ENV_PRESETS
+from ttd3_jax.env import TrackingEnv, make_config
+from ttd3_jax.evaluate import Controller, closed_loop, metrics
+from ttd3_jax.losses import actor_loss, critic_loss
+from ttd3_jax.networks import Networks, init_params, make_networks
+
+QUADROTOR = "quadrotor"
+BRAX_ENVS = (
+    "ant", "halfcheetah", "hopper", "humanoid", "humanoidstandup", "inverted_pendulum",
+    "inverted_double_pendulum", "pusher", "reacher", "swimmer", "walker2d",
+)  # fmt: skip
+ALGOS = ("ttd3", "td3")
+TARGET_NOISES = ("fixed", "shared_sigma")
+BACKENDS = ("mjx", "generalized", "positional", "spring")
+
+
+@struct.dataclass
+class Hyper:
+    """Numeric hyperparameters: pytree leaves, so ``vmap`` sweeps over them (spec §2.4)."""
+
+    gamma: float = 0.99  # discount per env step
+    tau: float = 5e-4  # Polyak factor (A6: 1 - 0.9995)
+    lr_actor: float = 3e-4  # Adam
+    lr_critic: float = 3e-4  # Adam
+    sigma: float = 0.1  # TD3 exploration std (constant schedule; linear start)
+    sigma_end: float = 0.0  # linear schedule end value
+    beta: float = 0.08  # T-TD3 weight of the time term
+    lam: float = 0.01  # T-TD3 decay rate per unit of t
+    u_max: float = 1.0  # action bound used by the σ formula
+    target_sigma: float = 0.2  # σ̃, target-policy smoothing std
+    target_clip: float = 0.1  # c, target-policy smoothing clip
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Static training configuration. Counts are env transitions unless stated."""
+
+    env: str = QUADROTOR  # "quadrotor" or a Brax env name
+    env_preset: str = "paper"  # quadrotor env preset ("paper" | "practical")
+    backend: str = "mjx"  # Brax physics backend
+    algo: str = "ttd3"  # "ttd3" (time-attenuating σ) | "td3" (constant σ)
+    num_envs: int = 20  # M, parallel training envs
+    total_transitions: int = 3_000_000
+    warmup_transitions: int = 25_000  # uniform-random actions before learning
+    buffer_size: int = 1_000_000  # rounded up to a multiple of num_envs
+    batch_size: int = 256
+    updates_per_step: int = 20  # G, gradient updates per vector env step
+    policy_delay: int = 2  # d
+    hidden: tuple[int, ...] = (256, 256)
+    epochs: int = 50  # progress / eval / checkpoint points
+    eval_episodes: int = 10  # Brax envs: deterministic episodes per evaluation
+    episode_length: int = 1000  # Brax envs: steps per episode
+    noise: nz.NoiseConfig = nz.NoiseConfig()
+    target_noise: str = "fixed"  # A4: σ̃ fixed, or "shared_sigma" (uses the current σ)
+    hp: Hyper = Hyper()
+    seed: int = 0
+    num_seeds: int = 1  # seeds run side by side with vmap: seed, seed+1, ...
+
+    def __post_init__(self):
+        validate(self)
+
+    # derived loop lengths ------------------------------------------------------------
+    @property
+    def warmup_steps(self) -> int:
+        """Vector env steps of random warm-up."""
+        return -(-self.warmup_transitions // self.num_envs)
+
+    @property
+    def steps_per_epoch(self) -> int:
+        """Vector env steps (each followed by G updates) per compiled epoch."""
+        return max(1, (self.total_transitions // self.num_envs - self.warmup_steps) // self.epochs)
+
+    @property
+    def buffer_capacity(self) -> int:
+        return -(-self.buffer_size // self.num_envs) * self.num_envs
+
+
+def validate(c: TrainConfig) -> None:
+    """Raise ``ValueError`` naming the bad field; runs before anything is compiled."""
+
+    def need(ok, msg):
+        if not ok:
+            raise ValueError(msg)
+
+    need(c.env == QUADROTOR or c.env in BRAX_ENVS, f"env must be {QUADROTOR!r} or one of {BRAX_ENVS}, got {c.env!r}")
+    need(c.env_preset in ENV_PRESETS, f"env_preset must be one of {ENV_PRESETS}, got {c.env_preset!r}")
+    need(c.backend in BACKENDS, f"backend must be one of {BACKENDS}, got {c.backend!r}")
+    need(c.algo in ALGOS, f"algo must be one of {ALGOS}, got {c.algo!r}")
+    need(c.target_noise in TARGET_NOISES, f"target_noise must be one of {TARGET_NOISES}, got {c.target_noise!r}")
+    for name in ("num_envs", "total_transitions", "buffer_size", "batch_size", "updates_per_step",
+                 "policy_delay", "epochs", "eval_episodes", "episode_length", "num_seeds"):  # fmt: skip
+        v = getattr(c, name)
+        need(isinstance(v, int) and not isinstance(v, bool) and v >= 1, f"{name} must be an integer >= 1, got {v!r}")
+    need(isinstance(c.warmup_transitions, int) and c.warmup_transitions >= 0,
+         f"warmup_transitions must be an integer >= 0, got {c.warmup_transitions!r}")  # fmt: skip
+    need(isinstance(c.seed, int) and c.seed >= 0, f"seed must be an integer >= 0, got {c.seed!r}")
+    need(len(c.hidden) >= 1 and all(isinstance(h, int) and h >= 1 for h in c.hidden),
+         f"hidden must be one or more layer widths >= 1, got {c.hidden!r}")  # fmt: skip
+    need(c.batch_size <= c.buffer_size, f"batch_size ({c.batch_size}) must be <= buffer_size ({c.buffer_size})")
+    need(c.warmup_transitions >= c.batch_size,
+         f"warmup_transitions ({c.warmup_transitions}) must be >= batch_size ({c.batch_size}) so the "
+         "first minibatch is drawn from a filled buffer")  # fmt: skip
+    budget = c.total_transitions // c.num_envs - -(-c.warmup_transitions // c.num_envs)
+    need(budget >= c.epochs,
+         f"total_transitions ({c.total_transitions}) leaves {max(budget, 0)} vector steps after warm-up, "
+         f"fewer than epochs ({c.epochs}); raise total_transitions or lower epochs")  # fmt: skip
+    h = c.hp
+    for name in ("gamma", "tau"):
+        v = getattr(h, name)
+        need(0 < v <= 1 if name == "tau" else 0 <= v < 1,
+             f"hp.{name} must be in {'(0, 1]' if name == 'tau' else '[0, 1)'}, got {v!r}")  # fmt: skip
+    for name in ("lr_actor", "lr_critic", "u_max"):
+        need(getattr(h, name) > 0, f"hp.{name} must be > 0, got {getattr(h, name)!r}")
+    for name in ("sigma", "sigma_end", "lam", "target_sigma", "target_clip"):
+        need(getattr(h, name) >= 0, f"hp.{name} must be >= 0, got {getattr(h, name)!r}")
+    need(0 <= h.beta <= 1, f"hp.beta must be in [0, 1], got {h.beta!r}")
+
+
+def with_algo(c: TrainConfig, algo: str) -> TrainConfig:
+    """T-TD3 and TD3 differ only in the exploration schedule."""
+    if algo not in ALGOS:
+        raise ValueError(f"algo must be one of {ALGOS}, got {algo!r}")
+    schedule = "time_attenuating" if algo == "ttd3" else "constant"
+    return dataclasses.replace(c, algo=algo, noise=dataclasses.replace(c.noise, schedule=schedule))
+
+
+# --------------------------------------------------------------------------- state
+
+
+@struct.dataclass
+class TrainState:
+    """Everything a run needs to continue exactly: checkpoint this whole pytree."""
+
+    actor: dict
+    critic: dict  # twin critics, leading axis 2
+    target_actor: dict
+    target_critic: dict
+    actor_opt: optax.OptState
+    critic_opt: optax.OptState
+    buffer: rb.ReplayBuffer
+    env_state: object  # batched Brax State of the training envs
+    ep_return: jax.Array  # (num_envs,) return of the running episodes
+    noise: nz.NoiseState
+    key: jax.Array
+    n_tr: jax.Array  # int32, transitions collected
+    n_upd: jax.Array  # int32, gradient updates done
+
+
+class EnvSpec(NamedTuple):
+    env: object  # single-env object with Brax reset/step
+    obs_size: int
+    action_size: int
+    episode_length: int  # transitions per nominal episode (L_nom)
+
+
+def make_env(c: TrainConfig) -> EnvSpec:
+    """The training env: the quadrotor tracking env, or a Brax env with a time limit."""
+    if c.env == QUADROTOR:
+        env = TrackingEnv(make_config(c.env_preset))
+        return EnvSpec(env, env.observation_size, env.action_size, env.episode_length)
+    import contextlib
+    import io
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        from brax import envs as brax_envs
+        from brax.envs.wrappers.training import EpisodeWrapper
+
+        env = brax_envs.get_environment(c.env, backend=c.backend)
+    env = EpisodeWrapper(env, c.episode_length, action_repeat=1)
+    return EnvSpec(env, env.observation_size, env.action_size, c.episode_length)
+
+
+def _adam(lr):
+    return optax.inject_hyperparams(optax.adam)(learning_rate=lr)
+
+
+def _where(mask, a, b):
+    """Per-env select between two batched pytrees (mask (n,))."""
+    return jax.tree.map(lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
+
+
+# --------------------------------------------------------------------------- trainer
+
+
+class Trainer(NamedTuple):
+    """Pure functions of one seed's state; ``vmap`` them over seeds / hyperparameters."""
+
+    config: TrainConfig
+    spec: EnvSpec
+    nets: Networks
+    init: Callable  # (key, hp) -> TrainState, buffer filled by the random warm-up
+    epoch: Callable  # (ts, hp) -> (ts, metrics): steps_per_epoch vector steps + updates
+    evaluate: Callable  # (ts) -> eval metrics (deterministic policy, separate envs)
+    train: Callable  # (key, hp) -> (ts, per-epoch metrics, per-epoch eval): fully fused
+
+
+def make_trainer(c: TrainConfig) -> Trainer:
+    """Build the pure training functions for config ``c`` (see module docstring)."""
+    spec = make_env(c)
+    env, n = spec.env, c.num_envs
+    noise_cfg = dataclasses.replace(c.noise, episode_length=spec.episode_length)
+    nets = make_networks(spec.action_size, c.hidden)
+    v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
+
+    def policy(params, obs):
+        return nets.actor.apply(params, obs)
+
+    def _collect(ts: TrainState, actions: jax.Array, key: jax.Array):
+        """Step all envs with ``actions``; store transitions; auto-reset finished envs."""
+        s = ts.env_state
+        nxt = v_step(s, actions)
+        trunc = nxt.info["truncation"]
+        terminated = nxt.done * (1.0 - trunc)
+        tr = rb.Transition(obs=s.obs, action=actions, reward=nxt.reward, next_obs=nxt.obs, terminated=terminated)
+        done = nxt.done > 0
+        ep_return = ts.ep_return + nxt.reward
+        finished_sum = jnp.sum(jnp.where(done, ep_return, 0.0))
+        finished_n = jnp.sum(done)
+        new_state = jax.lax.cond(
+            jnp.any(done), lambda: _where(done, v_reset(jax.random.split(key, n)), nxt), lambda: nxt
+        )
+        ts = ts.replace(
+            env_state=new_state,
+            ep_return=jnp.where(done, 0.0, ep_return),
+            buffer=rb.insert(ts.buffer, tr),
+            n_tr=ts.n_tr + n,
+        )
+        return ts, finished_sum, finished_n
+
+    def _init(key, hp: Hyper) -> TrainState:
+        k_net, k_env, k_warm, k_run = jax.random.split(key, 4)
+        actor, critic = init_params(nets, k_net, spec.obs_size, spec.action_size)
+        ts = TrainState(
+            actor=actor,
+            critic=critic,
+            target_actor=actor,
+            target_critic=critic,
+            actor_opt=_adam(hp.lr_actor).init(actor),
+            critic_opt=_adam(hp.lr_critic).init(critic),
+            buffer=rb.init(c.buffer_capacity, spec.obs_size, spec.action_size),
+            env_state=v_reset(jax.random.split(k_env, n)),
+            ep_return=jnp.zeros(n),
+            noise=nz.init(noise_cfg, hp),
+            key=k_run,
+            n_tr=jnp.zeros((), jnp.int32),
+            n_upd=jnp.zeros((), jnp.int32),
+        )
+
+        def warm(ts, k):  # spec A8: uniform-random actions before learning
+            k_a, k_r = jax.random.split(k)
+            a = jax.random.uniform(k_a, (n, spec.action_size), minval=-1.0, maxval=1.0)
+            return _collect(ts, a, k_r)[0], None
+
+        ts, _ = jax.lax.scan(warm, ts, jax.random.split(k_warm, c.warmup_steps))
+        return ts
+
+    def _update(ts: TrainState, hp: Hyper, key: jax.Array):
+        """One critic step, the σ update and, every d-th update, the actor + target step."""
+        k_batch, k_target = jax.random.split(key)
+        batch = rb.sample(ts.buffer, k_batch, c.batch_size)
+        target_std = hp.target_sigma if c.target_noise == "fixed" else nz.std(noise_cfg, ts.noise.sigma)
+        (c_loss, aux), grads = jax.value_and_grad(critic_loss, has_aux=True)(
+            ts.critic, nets, ts.target_actor, ts.target_critic, batch, k_target, hp, target_std
+        )
+        updates, critic_opt = _adam(hp.lr_critic).update(grads, ts.critic_opt, ts.critic)
+        critic = optax.apply_updates(ts.critic, updates)
+        n_upd = ts.n_upd + 1
+        noise = nz.update(noise_cfg, hp, ts.noise, batch.reward, ts.n_tr, n_upd, c.total_transitions)
+        ts = ts.replace(critic=critic, critic_opt=critic_opt, noise=noise, n_upd=n_upd)
+
+        def actor_step(ts):
+            a_loss, g = jax.value_and_grad(actor_loss)(ts.actor, nets, ts.critic, batch.obs)
+            upd, actor_opt = _adam(hp.lr_actor).update(g, ts.actor_opt, ts.actor)
+            actor = optax.apply_updates(ts.actor, upd)
+            ts = ts.replace(
+                actor=actor,
+                actor_opt=actor_opt,
+                target_actor=optax.incremental_update(actor, ts.target_actor, hp.tau),
+                target_critic=optax.incremental_update(ts.critic, ts.target_critic, hp.tau),
+            )
+            return ts, a_loss
+
+        ts, a_loss = jax.lax.cond(
+            n_upd % c.policy_delay == 0, actor_step, lambda ts: (ts, jnp.full((), jnp.nan)), ts
+        )
+        return ts, (c_loss, a_loss, aux["q_mean"])
+
+    def _vector_step(ts: TrainState, hp: Hyper):
+        key, k_noise, k_reset, k_upd = jax.random.split(ts.key, 4)
+        ts = ts.replace(key=key)
+        obs = ts.env_state.obs
+        std = nz.std(noise_cfg, ts.noise.sigma)
+        a = policy(ts.actor, obs) + std * jax.random.normal(k_noise, (n, spec.action_size))
+        ts, ret_sum, ret_n = _collect(ts, jnp.clip(a, -1.0, 1.0), k_reset)
+        ts, (c_loss, a_loss, q) = jax.lax.scan(
+            lambda t, k: _update(t, hp, k), ts, jax.random.split(k_upd, c.updates_per_step)
+        )
+        out = dict(critic_loss=jnp.mean(c_loss), actor_loss=jnp.nanmean(a_loss), q_mean=jnp.mean(q))
+        return ts, (out, ret_sum, ret_n)
+
+    def _epoch(ts: TrainState, hp: Hyper):
+        ts, (out, ret_sum, ret_n) = jax.lax.scan(lambda t, _: _vector_step(t, hp), ts, None, c.steps_per_epoch)
+        m = {k: jnp.nanmean(v) for k, v in out.items()}
+        n_ep = jnp.sum(ret_n)
+        m.update(
+            train_return=jnp.where(n_ep > 0, jnp.sum(ret_sum) / jnp.maximum(n_ep, 1), jnp.nan),
+            episodes=n_ep.astype(jnp.float32),
+            sigma=ts.noise.sigma,
+            env_steps=ts.n_tr.astype(jnp.float32),
+        )
+        return ts, m
+
+    def _evaluate(ts: TrainState):
+        return _eval_quad(c, nets, ts.actor) if c.env == QUADROTOR else _eval_brax(c, spec, nets, ts.actor)
+
+    def _train(key, hp: Hyper):
+        ts = _init(key, hp)
+
+        def body(ts, _):
+            ts, m = _epoch(ts, hp)
+            return ts, (m, _evaluate(ts))
+
+        ts, (m, ev) = jax.lax.scan(body, ts, None, c.epochs)
+        return ts, m, ev
+
+    return Trainer(c, spec, nets, _init, _epoch, _evaluate, _train)
+
+
+def policy_controller(nets: Networks, actor_params) -> Controller:
+    """The deterministic policy as an :class:`~ttd3_jax.evaluate.Controller`."""
+    return Controller(init=lambda s: (), act=lambda carry, s: (nets.actor.apply(actor_params, s.obs), carry))
+
+
+def _eval_quad(c: TrainConfig, nets: Networks, actor) -> dict:
+    """Spiral-RT and LOS-RT (seed 0) with the paper's evaluation protocol (spec §2.5)."""
+    out = {}
+    for track, name in (("spiral_rt", "spiral"), ("los_rt", "los")):
+        env = TrackingEnv(make_config(c.env_preset).for_eval(track))
+        m = metrics(env, closed_loop(env, policy_controller(nets, actor), env.reset(jax.random.PRNGKey(0))))
+        out.update({f"{name}_{k}": v for k, v in m.items()})
+    return out
+
+
+def _eval_brax(c: TrainConfig, spec: EnvSpec, nets: Networks, actor) -> dict:
+    """Mean undiscounted return of ``eval_episodes`` deterministic episodes (fixed keys)."""
+    env = spec.env
+    s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(12345), c.eval_episodes))
+
+    def body(carry, _):
+        s, ret, alive = carry
+        s = jax.vmap(env.step)(s, nets.actor.apply(actor, s.obs))
+        ret = ret + alive * s.reward
+        return (s, ret, alive * (1.0 - s.done)), None
+
+    ones = jnp.ones(c.eval_episodes)
+    (_, ret, _), _ = jax.lax.scan(body, (s, 0.0 * ones, ones), None, c.episode_length)
+    return {"eval_return": jnp.mean(ret)}
+
+
+def seed_keys(c: TrainConfig) -> jax.Array:
+    """Per-seed keys: seed i of a vmapped run equals ``--seed seed+i`` run alone."""
+    return jax.vmap(lambda s: jax.random.fold_in(jax.random.PRNGKey(0), s))(
+        jnp.arange(c.seed, c.seed + c.num_seeds)
+    )
+
+
+def buffer_bytes(c: TrainConfig, obs_size: int, action_size: int) -> int:
+    """Replay memory of the whole run (all seeds), in bytes."""
+    return c.num_seeds * c.buffer_capacity * rb.transition_bytes(obs_size, action_size)
+
+
+def preset(name: str, **overrides) -> TrainConfig:
+    """Named training configurations.
+
+    ``paper``: the published quadrotor settings (spec §2.4), 3e6 transitions.
+    ``fast``: quadrotor, tuned for wall clock on a laptop CPU.
+    ``mujoco``: the MuJoCo protocol (spec §2.7): 1 env, 1 update per step, τ = 0.005,
+    c = 0.5, 1e6 steps, L_nom = 1000.
+    """
+    if name == "paper":
+        base = TrainConfig()
+    elif name == "fast":
+        base = TrainConfig(
+            env_preset="practical",
+            num_envs=64,
+            total_transitions=300_000,
+            warmup_transitions=10_000,
+            buffer_size=300_000,
+            batch_size=256,
+            updates_per_step=8,
+            epochs=20,
+            hp=Hyper(tau=0.005),
+        )
+    elif name == "mujoco":
+        base = TrainConfig(
+            env="hopper",
+            num_envs=1,
+            total_transitions=1_000_000,
+            warmup_transitions=25_000,
+            buffer_size=1_000_000,
+            updates_per_step=1,
+            epochs=200,
+            noise=nz.NoiseConfig(episode_length=1000),
+            hp=Hyper(tau=0.005, target_clip=0.5),
+        )
+    else:
+        raise ValueError(f"unknown training preset {name!r}; allowed: {PRESETS}")
+    return dataclasses.replace(base, **overrides) if overrides else base
+
+
+PRESETS = ("paper", "fast", "mujoco")
+
+
+def total_epochs_transitions(c: TrainConfig) -> int:
+    """Transitions actually collected by a run (the budget rounded to whole epochs)."""
+    return (c.warmup_steps + c.steps_per_epoch * c.epochs) * c.num_envs
+
+
+def _finite_tree(tree) -> bool:
+    return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.floating))
