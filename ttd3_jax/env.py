@@ -303,6 +303,11 @@ class TrackingEnv(Env):
     def episode_length(self) -> int:
         return self.config.episode_length
 
+    @property
+    def num_segments(self) -> int:
+        """Static segment-table size of this env's tracks."""
+        return self._n_seg
+
     def reset(self, rng: jax.Array) -> State:
         """New episode: a track drawn per ``config.track`` and an initial state (R5)."""
         k_track, k_rest = jax.random.split(rng)
@@ -351,27 +356,16 @@ class TrackingEnv(Env):
         a = jnp.clip(action, -1.0, 1.0).astype(ps.quad.p.dtype)
         u = action_to_control(c, a)
         effort = self._effort(a)
-        quad, k, wind, key = ps.quad, ps.k, ps.wind, ps.key
-        reward = err_sum = jnp.zeros((), quad.p.dtype)
-        crashed = jnp.zeros((), bool)
-        for i in range(c.action_repeat):  # static and small: unrolled
-            if c.wind_sigma > 0:
-                key, sub = jax.random.split(key)
-                phi = math.exp(-c.dt / c.wind_tau)
-                xi = jax.random.normal(sub, (3,), wind.dtype)
-                wind = phi * wind + c.wind_sigma * math.sqrt(1.0 - phi * phi) * xi
-            quad = rk4_step(
-                c.quad, quad, u, c.dt, wind if c.wind_sigma > 0 else None, c.rk4_substeps, c.renormalize
+        zero = jnp.zeros((), ps.quad.p.dtype)
+        carry = (ps.quad, ps.k, ps.wind, ps.key, zero, zero, jnp.zeros((), bool))
+        if c.action_repeat == 1:
+            carry, p_ref = self._substep(ps.track, u, effort, carry, ps.ref_next)
+        else:  # one compiled body, whatever the repeat count
+            carry, p_refs = jax.lax.scan(
+                lambda cr, _: self._substep(ps.track, u, effort, cr), carry, None, c.action_repeat
             )
-            k = k + 1
-            p_ref = ps.ref_next if i == 0 else tr.position(ps.track, k, c.dt)
-            e = jnp.linalg.norm(p_ref - quad.p)
-            finite = jnp.isfinite(e) & _finite(quad)
-            alive = ~crashed
-            step_r = -c.rho1 * error_cost(c, e) - c.rho2 * effort
-            reward = reward + jnp.where(alive & finite, step_r, 0.0)
-            err_sum = err_sum + jnp.where(finite, e, jnp.inf)
-            crashed = crashed | ~finite | (e > c.e_max)
+            p_ref = p_refs[-1]
+        quad, k, wind, key, reward, err_sum, crashed = carry
         terminated = crashed if c.terminate else jnp.zeros((), bool)
         reward = reward - c.crash_penalty * terminated
         truncated = (k >= c.episode_steps) & ~terminated
@@ -400,6 +394,32 @@ class TrackingEnv(Env):
         )
 
     # pieces ------------------------------------------------------------------------------
+    def _substep(self, track, u, effort, carry, p_ref=None):
+        """One physics step of ``dt``: wind, RK4, tracking error, reward, crash flag.
+
+        ``carry = (quad, k, wind, key, reward, err_sum, crashed)``; ``p_ref`` may pass
+        p_d(k+1) when it is already known.  Returns the new carry and p_d(k+1)."""
+        c = self.config
+        quad, k, wind, key, reward, err_sum, crashed = carry
+        if c.wind_sigma > 0:
+            key, sub = jax.random.split(key)
+            phi = math.exp(-c.dt / c.wind_tau)
+            xi = jax.random.normal(sub, (3,), wind.dtype)
+            wind = phi * wind + c.wind_sigma * math.sqrt(1.0 - phi * phi) * xi
+        quad = rk4_step(
+            c.quad, quad, u, c.dt, wind if c.wind_sigma > 0 else None, c.rk4_substeps, c.renormalize
+        )
+        k = k + 1
+        if p_ref is None:
+            p_ref = tr.position(track, k, c.dt)
+        e = jnp.linalg.norm(p_ref - quad.p)
+        finite = jnp.isfinite(e) & _finite(quad)
+        step_r = -c.rho1 * error_cost(c, e) - c.rho2 * effort
+        reward = reward + jnp.where(~crashed & finite, step_r, 0.0)
+        err_sum = err_sum + jnp.where(finite, e, jnp.inf)
+        crashed = crashed | ~finite | (e > c.e_max)
+        return (quad, k, wind, key, reward, err_sum, crashed), p_ref
+
     def _effort(self, a: jax.Array) -> jax.Array:
         c = self.config
         if c.effort_hover_relative:

@@ -104,6 +104,28 @@ def metrics(env: TrackingEnv, r: Rollout) -> dict[str, jax.Array]:
     }
 
 
+def test_tracks(env: TrackingEnv, los_seeds=(0,)) -> tr.Track:
+    """Spiral-RT followed by the LOS-RT test instances ``los_seeds``, stacked on a leading
+    axis with the table size of ``env`` (so one ``vmap`` evaluates them all)."""
+    c = env.config
+    n = env.num_segments
+    tracks = [tr.spiral_rt(c.tracks, n)] + [
+        tr.los_test_track(s, c.tracks, num_segments=n, dt=c.dt) for s in los_seeds
+    ]
+    return jax.tree.map(lambda *x: jnp.stack(x), *tracks)
+
+
+def evaluate_on_tracks(env: TrackingEnv, controller: Controller, tracks: tr.Track) -> dict:
+    """Metrics (each with a leading track axis) of ``controller`` on a batch of tracks,
+    with the evaluation start state (on p_d(0), at rest, level)."""
+    key = jax.random.PRNGKey(0)
+
+    def one(track):
+        return metrics(env, closed_loop(env, controller, env.reset_with_track(key, track)))
+
+    return jax.vmap(one)(tracks)
+
+
 def make_controller(name: str, cfg: EnvConfig) -> Controller:
     if name == "geometric":
         return geometric_controller(cfg)

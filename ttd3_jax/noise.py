@@ -32,7 +32,6 @@ class NoiseConfig:
     delta_reduce: str = "sum"  # A1
     r_range: str = "batch"  # A2: min/max of the minibatch, or running extremes
     t_unit: str = "episode"  # A3: t = transitions / episode_length, transitions, or updates
-    episode_length: int = 3000  # L_nom, transitions per nominal episode
     sigma_is_variance: bool = False  # A5: N(0, σ) read as variance σ (std √σ)
 
     def __post_init__(self):
@@ -44,10 +43,6 @@ class NoiseConfig:
         ):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"NoiseConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
-        if not (isinstance(self.episode_length, int) and self.episode_length >= 1):
-            raise ValueError(
-                f"NoiseConfig.episode_length must be an integer >= 1, got {self.episode_length!r}"
-            )
 
 
 @struct.dataclass
@@ -66,11 +61,13 @@ def init(cfg: NoiseConfig, hp) -> NoiseState:
     )
 
 
-def update(cfg: NoiseConfig, hp, ns: NoiseState, rewards: jax.Array, n_tr, n_upd, n_total) -> NoiseState:
+def update(cfg: NoiseConfig, hp, ns: NoiseState, rewards: jax.Array, n_tr, n_upd, n_total: int,
+           episode_length: int) -> NoiseState:  # fmt: skip
     """σ after one critic update on a minibatch with ``rewards`` (B,).
 
     ``n_tr``: transitions collected so far; ``n_upd``: updates done; ``n_total``: the
-    run's transition budget (for ``linear``)."""
+    run's transition budget (for ``linear``); ``episode_length``: L_nom, transitions
+    per nominal episode of the training env (t_unit="episode")."""
     if cfg.schedule == "constant":
         return ns.replace(sigma=jnp.asarray(hp.sigma, ns.sigma.dtype))
     if cfg.schedule == "linear":
@@ -84,7 +81,7 @@ def update(cfg: NoiseConfig, hp, ns: NoiseState, rewards: jax.Array, n_tr, n_upd
     span = r_max - r_min
     norm = (rewards - r_min) / jnp.maximum(span, 1e-8)
     delta = jnp.sum(norm) if cfg.delta_reduce == "sum" else jnp.mean(norm)
-    t = {"episode": n_tr / cfg.episode_length, "env_step": n_tr, "update": n_upd}[cfg.t_unit]
+    t = {"episode": n_tr / episode_length, "env_step": n_tr, "update": n_upd}[cfg.t_unit]
     t = jnp.asarray(t, jnp.float32)
     new = hp.beta * hp.u_max * jnp.exp(-hp.lam * t) + (1.0 - hp.beta) * hp.u_max * jnp.exp(-delta)
     sigma = jnp.where(span > 1e-8, new, ns.sigma).astype(ns.sigma.dtype)

@@ -18,7 +18,6 @@ CLI: ``python -m ttd3_jax.train --help``.
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -31,7 +30,7 @@ from ttd3_jax import buffer as rb
 from ttd3_jax import noise as nz
 from ttd3_jax.env import PRESETS as ENV_PRESETS
 from ttd3_jax.env import TrackingEnv, make_config
-from ttd3_jax.evaluate import Controller, closed_loop, metrics
+from ttd3_jax.evaluate import Controller, evaluate_on_tracks, test_tracks
 from ttd3_jax.losses import actor_loss, critic_loss
 from ttd3_jax.networks import Networks, init_params, make_networks
 
@@ -113,21 +112,32 @@ def validate(c: TrainConfig) -> None:
         if not ok:
             raise ValueError(msg)
 
-    need(c.env == QUADROTOR or c.env in BRAX_ENVS, f"env must be {QUADROTOR!r} or one of {BRAX_ENVS}, got {c.env!r}")
+    need(
+        c.env == QUADROTOR or c.env in BRAX_ENVS,
+        f"env must be {QUADROTOR!r} or one of {BRAX_ENVS}, got {c.env!r}",
+    )
     need(c.env_preset in ENV_PRESETS, f"env_preset must be one of {ENV_PRESETS}, got {c.env_preset!r}")
     need(c.backend in BACKENDS, f"backend must be one of {BACKENDS}, got {c.backend!r}")
     need(c.algo in ALGOS, f"algo must be one of {ALGOS}, got {c.algo!r}")
-    need(c.target_noise in TARGET_NOISES, f"target_noise must be one of {TARGET_NOISES}, got {c.target_noise!r}")
+    need(
+        c.target_noise in TARGET_NOISES,
+        f"target_noise must be one of {TARGET_NOISES}, got {c.target_noise!r}",
+    )
     for name in ("num_envs", "total_transitions", "buffer_size", "batch_size", "updates_per_step",
                  "policy_delay", "epochs", "eval_episodes", "episode_length", "num_seeds"):  # fmt: skip
         v = getattr(c, name)
-        need(isinstance(v, int) and not isinstance(v, bool) and v >= 1, f"{name} must be an integer >= 1, got {v!r}")
+        need(
+            isinstance(v, int) and not isinstance(v, bool) and v >= 1,
+            f"{name} must be an integer >= 1, got {v!r}",
+        )
     need(isinstance(c.warmup_transitions, int) and c.warmup_transitions >= 0,
          f"warmup_transitions must be an integer >= 0, got {c.warmup_transitions!r}")  # fmt: skip
     need(isinstance(c.seed, int) and c.seed >= 0, f"seed must be an integer >= 0, got {c.seed!r}")
     need(len(c.hidden) >= 1 and all(isinstance(h, int) and h >= 1 for h in c.hidden),
          f"hidden must be one or more layer widths >= 1, got {c.hidden!r}")  # fmt: skip
-    need(c.batch_size <= c.buffer_size, f"batch_size ({c.batch_size}) must be <= buffer_size ({c.buffer_size})")
+    need(
+        c.batch_size <= c.buffer_size, f"batch_size ({c.batch_size}) must be <= buffer_size ({c.buffer_size})"
+    )
     need(c.warmup_transitions >= c.batch_size,
          f"warmup_transitions ({c.warmup_transitions}) must be >= batch_size ({c.batch_size}) so the "
          "first minibatch is drawn from a filled buffer")  # fmt: skip
@@ -229,7 +239,7 @@ def make_trainer(c: TrainConfig) -> Trainer:
     """Build the pure training functions for config ``c`` (see module docstring)."""
     spec = make_env(c)
     env, n = spec.env, c.num_envs
-    noise_cfg = dataclasses.replace(c.noise, episode_length=spec.episode_length)
+    noise_cfg = c.noise
     nets = make_networks(spec.action_size, c.hidden)
     v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
 
@@ -242,7 +252,9 @@ def make_trainer(c: TrainConfig) -> Trainer:
         nxt = v_step(s, actions)
         trunc = nxt.info["truncation"]
         terminated = nxt.done * (1.0 - trunc)
-        tr = rb.Transition(obs=s.obs, action=actions, reward=nxt.reward, next_obs=nxt.obs, terminated=terminated)
+        tr = rb.Transition(
+            obs=s.obs, action=actions, reward=nxt.reward, next_obs=nxt.obs, terminated=terminated
+        )
         done = nxt.done > 0
         ep_return = ts.ep_return + nxt.reward
         finished_sum = jnp.sum(jnp.where(done, ep_return, 0.0))
@@ -296,7 +308,9 @@ def make_trainer(c: TrainConfig) -> Trainer:
         updates, critic_opt = _adam(hp.lr_critic).update(grads, ts.critic_opt, ts.critic)
         critic = optax.apply_updates(ts.critic, updates)
         n_upd = ts.n_upd + 1
-        noise = nz.update(noise_cfg, hp, ts.noise, batch.reward, ts.n_tr, n_upd, c.total_transitions)
+        noise = nz.update(
+            noise_cfg, hp, ts.noise, batch.reward, ts.n_tr, n_upd, c.total_transitions, spec.episode_length
+        )
         ts = ts.replace(critic=critic, critic_opt=critic_opt, noise=noise, n_upd=n_upd)
 
         def actor_step(ts):
@@ -330,7 +344,9 @@ def make_trainer(c: TrainConfig) -> Trainer:
         return ts, (out, ret_sum, ret_n)
 
     def _epoch(ts: TrainState, hp: Hyper):
-        ts, (out, ret_sum, ret_n) = jax.lax.scan(lambda t, _: _vector_step(t, hp), ts, None, c.steps_per_epoch)
+        ts, (out, ret_sum, ret_n) = jax.lax.scan(
+            lambda t, _: _vector_step(t, hp), ts, None, c.steps_per_epoch
+        )
         m = {k: jnp.nanmean(v) for k, v in out.items()}
         n_ep = jnp.sum(ret_n)
         m.update(
@@ -363,12 +379,13 @@ def policy_controller(nets: Networks, actor_params) -> Controller:
 
 
 def _eval_quad(c: TrainConfig, nets: Networks, actor) -> dict:
-    """Spiral-RT and LOS-RT (seed 0) with the paper's evaluation protocol (spec §2.5)."""
+    """Spiral-RT and LOS-RT (seed 0) with the paper's evaluation protocol (spec §2.5),
+    both in one vmapped closed loop."""
+    env = TrackingEnv(make_config(c.env_preset).for_eval("los_rt"))
+    m = evaluate_on_tracks(env, policy_controller(nets, actor), test_tracks(env))
     out = {}
-    for track, name in (("spiral_rt", "spiral"), ("los_rt", "los")):
-        env = TrackingEnv(make_config(c.env_preset).for_eval(track))
-        m = metrics(env, closed_loop(env, policy_controller(nets, actor), env.reset(jax.random.PRNGKey(0))))
-        out.update({f"{name}_{k}": v for k, v in m.items()})
+    for i, name in enumerate(("spiral", "los")):
+        out.update({f"{name}_{k}": v[i] for k, v in m.items()})
     return out
 
 
@@ -431,7 +448,6 @@ def preset(name: str, **overrides) -> TrainConfig:
             buffer_size=1_000_000,
             updates_per_step=1,
             epochs=200,
-            noise=nz.NoiseConfig(episode_length=1000),
             hp=Hyper(tau=0.005, target_clip=0.5),
         )
     else:
@@ -448,4 +464,63 @@ def total_epochs_transitions(c: TrainConfig) -> int:
 
 
 def _finite_tree(tree) -> bool:
-    return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.floating))
+    return all(
+        bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.floating)
+    )
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m ttd3_jax.train [--preset fast|paper|mujoco] [--algo ttd3|td3] [...]``."""
+    import argparse
+    import sys
+
+    import tyro
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--preset", default="fast", choices=PRESETS)
+    pre.add_argument("--out", default="runs")
+    pre.add_argument("--resume", default=None)
+    known, rest = pre.parse_known_args(argv)
+    from ttd3_jax.runner import TrainingDiverged, run
+
+    if known.resume is not None:
+        if rest:
+            print(f"error: --resume continues the saved config; remove {' '.join(rest)}", file=sys.stderr)
+            return 2
+        try:
+            run(resume=known.resume)
+        except (FileNotFoundError, ValueError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        except TrainingDiverged as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 3
+        return 0
+    description = (
+        f"Train T-TD3 or TD3 (preset {known.preset!r}; defaults below are that preset's). Also: "
+        f"--preset {{{','.join(PRESETS)}}}, --out DIR (default runs), --resume RUN_DIR."
+    )
+    try:
+        cfg = tyro.cli(TrainConfig, default=preset(known.preset), args=rest, description=description)
+        if not any(a.startswith("--noise.schedule") for a in rest):
+            cfg = with_algo(cfg, cfg.algo)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    try:
+        run(cfg, out=known.out)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except TrainingDiverged as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 3
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,251 @@
+"""Trainer: config errors, noise schedules, replay buffer, seed vmap, resume, divergence."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ttd3_jax import buffer as rb
+from ttd3_jax import checkpoint as ckpt
+from ttd3_jax import noise as nz
+from ttd3_jax.runner import CsvLog, TrainingDiverged, _check_finite, read_metrics, run
+from ttd3_jax.train import Hyper, TrainConfig, main, make_trainer, preset, seed_keys, with_algo
+
+
+def tiny(**kw) -> TrainConfig:
+    """A few seconds of training: 16 envs, 2 epochs of 16 vector steps, 32-32 networks."""
+    base = dict(
+        num_envs=16,
+        total_transitions=16 * 40,
+        warmup_transitions=16 * 8,
+        buffer_size=16 * 64,
+        batch_size=64,
+        updates_per_step=2,
+        epochs=2,
+        hidden=(32, 32),
+    )
+    base.update(kw)
+    return preset("fast", **base)
+
+
+# --------------------------------------------------------------------------- config
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(batch_size=2048, buffer_size=1024), "batch_size"),
+        (dict(env="cartpole3d"), "env must be"),
+        (dict(num_envs=0), "num_envs"),
+        (dict(epochs=-1), "epochs"),
+        (dict(algo="sac"), "algo"),
+        (dict(env_preset="fast"), "env_preset"),
+        (dict(total_transitions=100), "total_transitions"),
+        (dict(warmup_transitions=10), "warmup_transitions"),
+        (dict(hp=Hyper(beta=1.5)), "hp.beta"),
+        (dict(hp=Hyper(gamma=1.0)), "hp.gamma"),
+        (dict(hp=Hyper(lr_critic=0.0)), "hp.lr_critic"),
+        (dict(target_noise="shared"), "target_noise"),
+    ],
+)
+def test_config_errors_are_raised_at_construction(kw, match):
+    with pytest.raises(ValueError, match=match):
+        tiny(**kw)
+
+
+@pytest.mark.parametrize(
+    "field, value", [("schedule", "cosine"), ("delta_reduce", "max"), ("t_unit", "hour")]
+)
+def test_noise_config_errors(field, value):
+    with pytest.raises(ValueError, match=field):
+        nz.NoiseConfig(**{field: value})
+
+
+def test_unknown_preset_and_cli_errors(capsys):
+    with pytest.raises(ValueError, match="unknown training preset 'quick'"):
+        preset("quick")
+    with pytest.raises(SystemExit) as exc:  # tyro reports the ValueError and exits 2
+        main(["--num-envs", "0"])
+    assert exc.value.code == 2
+    assert "num_envs must be an integer >= 1" in capsys.readouterr().err
+    assert main(["--resume", "/nonexistent/run"]) == 2
+    assert "not a ttd3_jax run directory" in capsys.readouterr().err
+
+
+def test_algo_switches_only_the_noise_schedule():
+    a, b = with_algo(tiny(), "ttd3"), with_algo(tiny(), "td3")
+    assert a.noise.schedule == "time_attenuating" and b.noise.schedule == "constant"
+    assert dataclasses.replace(b, algo="ttd3", noise=a.noise) == a
+
+
+# --------------------------------------------------------------------------- noise
+
+
+def test_time_attenuating_sigma_matches_formula():
+    hp = Hyper(beta=0.08, lam=0.01, u_max=1.0)
+    cfg = nz.NoiseConfig()
+    r = jnp.array([-1.0, -0.5, -0.25, 0.0])
+    ns = nz.init(cfg, hp)
+    assert float(ns.sigma) == 1.0  # Alg. 1 starts at u_max
+    out = nz.update(cfg, hp, ns, r, n_tr=30_000, n_upd=7, n_total=10**6, episode_length=3000)
+    delta = float(np.sum((r - r.min()) / (r.max() - r.min())))  # 0 + 0.5 + 0.75 + 1
+    expected = 0.08 * np.exp(-0.01 * 10.0) + 0.92 * np.exp(-delta)
+    np.testing.assert_allclose(float(out.sigma), expected, rtol=1e-6)
+    mean = nz.update(dataclasses.replace(cfg, delta_reduce="mean"), hp, ns, r, 30_000, 7, 10**6, 3000)
+    np.testing.assert_allclose(float(mean.sigma), 0.08 * np.exp(-0.1) + 0.92 * np.exp(-delta / 4), rtol=1e-6)
+    per_step = nz.update(dataclasses.replace(cfg, t_unit="env_step"), hp, ns, r, 30_000, 7, 10**6, 3000)
+    np.testing.assert_allclose(float(per_step.sigma), 0.92 * np.exp(-delta), rtol=1e-5)
+    per_update = nz.update(dataclasses.replace(cfg, t_unit="update"), hp, ns, r, 30_000, 7, 10**6, 3000)
+    np.testing.assert_allclose(
+        float(per_update.sigma), 0.08 * np.exp(-0.07) + 0.92 * np.exp(-delta), rtol=1e-6
+    )
+
+
+def test_sigma_kept_when_rewards_are_flat_and_running_range():
+    hp, cfg = Hyper(), nz.NoiseConfig()
+    ns = nz.NoiseState(sigma=jnp.float32(0.3), r_min=jnp.float32(jnp.inf), r_max=jnp.float32(-jnp.inf))
+    flat = nz.update(cfg, hp, ns, jnp.full(8, -2.0), 1000, 1, 10**6, 3000)
+    assert float(flat.sigma) == pytest.approx(0.3)
+    run_cfg = dataclasses.replace(cfg, r_range="running")
+    s1 = nz.update(run_cfg, hp, ns, jnp.array([-4.0, 0.0]), 0, 1, 10**6, 3000)
+    s2 = nz.update(run_cfg, hp, s1, jnp.array([-1.0, -1.0]), 0, 2, 10**6, 3000)
+    assert float(s2.r_min) == -4.0 and float(s2.r_max) == 0.0
+    # a flat batch is still normalised by the running range: δ = 2 * 0.75
+    np.testing.assert_allclose(float(s2.sigma), 0.08 + 0.92 * np.exp(-1.5), rtol=1e-6)
+
+
+def test_constant_and_linear_schedules():
+    hp = Hyper(sigma=0.1, sigma_end=0.02)
+    c = nz.NoiseConfig(schedule="constant")
+    ns = nz.init(c, hp)
+    assert float(nz.update(c, hp, ns, jnp.arange(4.0), 10, 1, 100, 10).sigma) == pytest.approx(0.1)
+    lin = nz.NoiseConfig(schedule="linear")
+    assert float(nz.update(lin, hp, ns, jnp.arange(4.0), 50, 1, 100, 10).sigma) == pytest.approx(0.06)
+    assert float(nz.std(nz.NoiseConfig(sigma_is_variance=True), jnp.float32(0.04))) == pytest.approx(0.2)
+
+
+# --------------------------------------------------------------------------- buffer
+
+
+def test_ring_buffer_insert_wraps_and_samples_filled_rows():
+    buf = rb.init(8, obs_size=2, action_size=1)
+
+    def batch(v):
+        n = 4
+        return rb.Transition(
+            obs=jnp.full((n, 2), v), action=jnp.full((n, 1), v), reward=jnp.arange(n) + v,
+            next_obs=jnp.full((n, 2), v), terminated=jnp.zeros(n),
+        )  # fmt: skip
+
+    buf = rb.insert(buf, batch(0.0))
+    assert int(buf.size) == 4 and int(buf.pos) == 4
+    s = rb.sample(buf, jax.random.PRNGKey(0), 256)
+    assert set(np.unique(np.asarray(s.reward))) <= {0.0, 1.0, 2.0, 3.0}
+    buf = rb.insert(rb.insert(buf, batch(10.0)), batch(20.0))  # wraps: overwrites rows 0-3
+    assert int(buf.size) == 8 and int(buf.pos) == 4
+    np.testing.assert_array_equal(buf.data.reward, [20, 21, 22, 23, 10, 11, 12, 13])
+    assert rb.transition_bytes(17, 4) == 4 * (2 * 17 + 4 + 2)
+
+
+# --------------------------------------------------------------------------- trainer
+
+
+def test_transitions_store_true_next_obs_and_terminated_apart_from_truncation():
+    c = tiny(warmup_transitions=16 * 150, total_transitions=16 * 200, buffer_size=16 * 256)
+    t = make_trainer(c)
+    ts = jax.jit(t.init)(seed_keys(c)[0], c.hp)
+    d = jax.device_get(ts.buffer.data)
+    n = int(ts.buffer.size)
+    assert n == c.warmup_steps * c.num_envs
+    # within one env's consecutive rows, next_obs of step i is obs of step i+1 unless it ended
+    obs = d.obs[:n].reshape(-1, c.num_envs, d.obs.shape[-1])
+    nxt = d.next_obs[:n].reshape(obs.shape)
+    term = d.terminated[:n].reshape(obs.shape[:2])
+    same = np.all(np.isclose(nxt[:-1], obs[1:]), axis=-1)
+    assert np.all(same | (term[:-1] > 0))
+    assert np.any(term > 0)  # random actions crash some episodes: stored as terminated
+    assert set(np.unique(term)) <= {0.0, 1.0}
+
+
+def test_vmapped_seed_equals_seed_run_alone():
+    both = tiny(num_seeds=2, seed=3)
+    alone = tiny(num_seeds=1, seed=4)
+    tb, ta = make_trainer(both), make_trainer(alone)
+    ts_b = jax.jit(jax.vmap(tb.init, in_axes=(0, None)))(seed_keys(both), both.hp)
+    ts_a = jax.jit(jax.vmap(ta.init, in_axes=(0, None)))(seed_keys(alone), alone.hp)
+    for x, y in zip(jax.tree.leaves(ts_b.actor), jax.tree.leaves(ts_a.actor), strict=True):
+        np.testing.assert_array_equal(x[1], y[0])
+    assert any(not np.allclose(x[0], x[1]) for x in jax.tree.leaves(ts_b.actor))  # seeds differ
+    _, mb = jax.jit(jax.vmap(tb.epoch, in_axes=(0, None)))(ts_b, both.hp)
+    _, ma = jax.jit(jax.vmap(ta.epoch, in_axes=(0, None)))(ts_a, alone.hp)
+    for k in ("critic_loss", "actor_loss", "q_mean", "sigma", "env_steps"):
+        np.testing.assert_allclose(mb[k][1], ma[k][0], rtol=1e-4, atol=1e-6, err_msg=k)
+
+
+def test_sweep_over_hyperparameters_is_one_vmapped_program():
+    c = tiny(epochs=1)
+    t = make_trainer(c)
+    hps = Hyper(lr_critic=jnp.array([1e-4, 1e-3]), beta=jnp.array([0.05, 0.2]))
+    fixed = ("gamma", "tau", "lr_actor", "sigma", "sigma_end", "lam", "u_max", "target_sigma", "target_clip")
+    hp_axes = Hyper(lr_critic=0, beta=0, **dict.fromkeys(fixed))  # fmt: skip
+    keys = jnp.stack([seed_keys(c)[0]] * 2)
+    _, m, ev = jax.jit(jax.vmap(t.train, in_axes=(0, hp_axes)))(keys, hps)
+    assert m["critic_loss"].shape == (2, 1)
+    assert not np.allclose(m["critic_loss"][0], m["critic_loss"][1])
+    assert ev["spiral_tracking_error"].shape == (2, 1)
+
+
+def test_resume_equals_uninterrupted(tmp_path):
+    c = tiny(epochs=3)
+    full = run(c, out=str(tmp_path / "a"), verbose=False)
+    part = run(c, out=str(tmp_path / "b"), verbose=False, stop_after=1)
+    assert part["stopped_at"] == 1
+    resumed = run(resume=part["run_dir"], verbose=False)
+    ra, rb_ = read_metrics(full["run_dir"]), read_metrics(resumed["run_dir"])
+    assert len(ra) == len(rb_) == 3
+    for x, y in zip(ra, rb_, strict=True):
+        for k in ("critic_loss", "sigma", "env_steps", "spiral_tracking_error", "los_tracking_error"):
+            assert x[k] == pytest.approx(y[k], rel=1e-6, abs=1e-7), k
+    assert full["final_eval"] == resumed["final_eval"]
+    for name in ("config.json", "metrics.csv", "eval.json", "learning_curve.png"):
+        assert os.path.isfile(os.path.join(resumed["run_dir"], name))
+    ev = json.load(open(os.path.join(full["run_dir"], "eval.json")))
+    assert set(ev["final_eval"][0]) >= {"spiral_tracking_error", "los_tracking_error", "spiral_energy"}
+
+
+def test_nonfinite_metrics_stop_with_message(tmp_path):
+    c = tiny()
+    t = make_trainer(c)
+    ts = jax.jit(jax.vmap(t.init, in_axes=(0, None)))(seed_keys(c), c.hp)
+    mngr = ckpt.manager(str(tmp_path))
+    ckpt.save(mngr, 0, ts)
+    m = {"critic_loss": np.array([np.nan]), "q_mean": np.array([1.0]), "env_steps": np.array([2048.0])}
+    with pytest.raises(
+        TrainingDiverged, match=r"non-finite critic_loss in epoch 1 .*last good checkpoint is epoch 0"
+    ):
+        _check_finite(m, ts, 1, c, str(tmp_path), mngr)
+
+
+def test_diverging_run_keeps_last_good_checkpoint(tmp_path):
+    c = tiny(epochs=3, hp=Hyper(lr_critic=1e30, lr_actor=1e30))
+    with pytest.raises(TrainingDiverged, match="non-finite"):
+        run(c, out=str(tmp_path), verbose=False)
+    (run_dir,) = [os.path.join(tmp_path, d) for d in os.listdir(tmp_path)]
+    mngr = ckpt.manager(run_dir)
+    assert ckpt.latest_epoch(mngr) is not None
+
+
+def test_csv_log_drops_rows_past_checkpoint(tmp_path):
+    path = str(tmp_path / "m.csv")
+    log = CsvLog(path)
+    log.write([{"epoch": 1, "seed": 0, "x": 1.0}])
+    log.write([{"epoch": 2, "seed": 0, "x": 2.0}])
+    CsvLog(path, keep_through_epoch=1)
+    with open(path) as fh:
+        assert fh.read().count("\n") == 2  # header + epoch 1

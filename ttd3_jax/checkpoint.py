@@ -1,0 +1,33 @@
+"""Orbax checkpoints of the whole training state (optimiser state, buffer and key included).
+
+Saves are synchronous and atomic (orbax writes a temporary directory and renames
+it), so a run killed at any point keeps its last complete checkpoint.
+"""
+
+from __future__ import annotations
+
+import os
+
+import jax
+import orbax.checkpoint as ocp
+
+
+def manager(run_dir: str, max_to_keep: int = 2) -> ocp.CheckpointManager:
+    options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, enable_async_checkpointing=False)
+    return ocp.CheckpointManager(os.path.abspath(os.path.join(run_dir, "checkpoints")), options=options)
+
+
+def save(mngr: ocp.CheckpointManager, epoch: int, state) -> None:
+    """Save ``state`` as checkpoint ``epoch`` (epochs completed) and wait for it."""
+    mngr.save(epoch, args=ocp.args.StandardSave(state), force=True)
+    mngr.wait_until_finished()
+
+
+def latest_epoch(mngr: ocp.CheckpointManager) -> int | None:
+    return mngr.latest_step()
+
+
+def restore(mngr: ocp.CheckpointManager, epoch: int, like):
+    """Restore checkpoint ``epoch`` into the structure, shapes and dtypes of ``like``."""
+    abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like)
+    return mngr.restore(epoch, args=ocp.args.StandardRestore(abstract))
