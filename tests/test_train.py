@@ -192,7 +192,18 @@ def test_sweep_over_hyperparameters_is_one_vmapped_program():
     c = tiny(epochs=1)
     t = make_trainer(c)
     hps = Hyper(lr_critic=jnp.array([1e-4, 1e-3]), beta=jnp.array([0.05, 0.2]))
-    fixed = ("gamma", "tau", "lr_actor", "sigma", "sigma_end", "lam", "u_max", "target_sigma", "target_clip")
+    fixed = (
+        "gamma",
+        "tau",
+        "lr_actor",
+        "sigma",
+        "sigma_end",
+        "lam",
+        "u_max",
+        "target_sigma",
+        "target_clip",
+        "reward_scale",
+    )
     hp_axes = Hyper(lr_critic=0, beta=0, **dict.fromkeys(fixed))  # fmt: skip
     keys = jnp.stack([seed_keys(c)[0]] * 2)
     _, m, ev = jax.jit(jax.vmap(t.train, in_axes=(0, hp_axes)))(keys, hps)
@@ -249,3 +260,49 @@ def test_csv_log_drops_rows_past_checkpoint(tmp_path):
     CsvLog(path, keep_through_epoch=1)
     with open(path) as fh:
         assert fh.read().count("\n") == 2  # header + epoch 1
+
+
+TINY_CLI = [
+    "--num-envs", "16", "--total-transitions", "1024", "--warmup-transitions", "128", "--buffer-size", "1024",
+    "--batch-size", "64", "--updates-per-step", "2", "--epochs", "4", "--hidden", "32", "32",
+]  # fmt: skip
+
+
+def test_sigkill_then_resume_finishes_the_run(tmp_path):
+    """A run killed at an arbitrary point resumes from its last complete checkpoint."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "runs"
+    cmd = [sys.executable, "-m", "ttd3_jax.train", *TINY_CLI, "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    deadline = time.time() + 300
+    run_dir = None
+    while time.time() < deadline and proc.poll() is None:
+        dirs = list(out.glob("*/checkpoints/1")) if out.exists() else []
+        if dirs:
+            run_dir = dirs[0].parent.parent
+            break
+        time.sleep(0.05)
+    assert run_dir is not None, (
+        proc.stdout.read().decode() if proc.poll() is not None else "no checkpoint in time"
+    )
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    mngr = ckpt.manager(str(run_dir))
+    last = ckpt.latest_epoch(mngr)
+    assert last is not None and last >= 1
+    mngr.close()
+    res = subprocess.run(
+        [sys.executable, "-m", "ttd3_jax.train", "--resume", str(run_dir)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert f"resumed {run_dir} at epoch {last}/4" in res.stdout
+    rows = read_metrics(str(run_dir))
+    assert [int(r["epoch"]) for r in rows] == [1, 2, 3, 4]
+    assert os.path.isfile(run_dir / "eval.json")

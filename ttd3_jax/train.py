@@ -59,6 +59,7 @@ class Hyper:
     u_max: float = 1.0  # action bound used by the σ formula
     target_sigma: float = 0.2  # σ̃, target-policy smoothing std
     target_clip: float = 0.1  # c, target-policy smoothing clip
+    reward_scale: float = 1.0  # rewards are stored times this (keeps Q values O(1..100))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,7 +151,7 @@ def validate(c: TrainConfig) -> None:
         v = getattr(h, name)
         need(0 < v <= 1 if name == "tau" else 0 <= v < 1,
              f"hp.{name} must be in {'(0, 1]' if name == 'tau' else '[0, 1)'}, got {v!r}")  # fmt: skip
-    for name in ("lr_actor", "lr_critic", "u_max"):
+    for name in ("lr_actor", "lr_critic", "u_max", "reward_scale"):
         need(getattr(h, name) > 0, f"hp.{name} must be > 0, got {getattr(h, name)!r}")
     for name in ("sigma", "sigma_end", "lam", "target_sigma", "target_clip"):
         need(getattr(h, name) >= 0, f"hp.{name} must be >= 0, got {getattr(h, name)!r}")
@@ -246,14 +247,18 @@ def make_trainer(c: TrainConfig) -> Trainer:
     def policy(params, obs):
         return nets.actor.apply(params, obs)
 
-    def _collect(ts: TrainState, actions: jax.Array, key: jax.Array):
+    def _collect(ts: TrainState, hp: Hyper, actions: jax.Array, key: jax.Array):
         """Step all envs with ``actions``; store transitions; auto-reset finished envs."""
         s = ts.env_state
         nxt = v_step(s, actions)
         trunc = nxt.info["truncation"]
         terminated = nxt.done * (1.0 - trunc)
         tr = rb.Transition(
-            obs=s.obs, action=actions, reward=nxt.reward, next_obs=nxt.obs, terminated=terminated
+            obs=s.obs,
+            action=actions,
+            reward=hp.reward_scale * nxt.reward,
+            next_obs=nxt.obs,
+            terminated=terminated,
         )
         done = nxt.done > 0
         ep_return = ts.ep_return + nxt.reward
@@ -292,7 +297,7 @@ def make_trainer(c: TrainConfig) -> Trainer:
         def warm(ts, k):  # spec A8: uniform-random actions before learning
             k_a, k_r = jax.random.split(k)
             a = jax.random.uniform(k_a, (n, spec.action_size), minval=-1.0, maxval=1.0)
-            return _collect(ts, a, k_r)[0], None
+            return _collect(ts, hp, a, k_r)[0], None
 
         ts, _ = jax.lax.scan(warm, ts, jax.random.split(k_warm, c.warmup_steps))
         return ts
@@ -336,7 +341,7 @@ def make_trainer(c: TrainConfig) -> Trainer:
         obs = ts.env_state.obs
         std = nz.std(noise_cfg, ts.noise.sigma)
         a = policy(ts.actor, obs) + std * jax.random.normal(k_noise, (n, spec.action_size))
-        ts, ret_sum, ret_n = _collect(ts, jnp.clip(a, -1.0, 1.0), k_reset)
+        ts, ret_sum, ret_n = _collect(ts, hp, jnp.clip(a, -1.0, 1.0), k_reset)
         ts, (c_loss, a_loss, q) = jax.lax.scan(
             lambda t, k: _update(t, hp, k), ts, jax.random.split(k_upd, c.updates_per_step)
         )
