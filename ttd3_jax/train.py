@@ -68,6 +68,7 @@ class TrainConfig:
 
     env: str = QUADROTOR  # "quadrotor" or a Brax env name
     env_preset: str = "paper"  # quadrotor env preset ("paper" | "practical")
+    hover_centered_thrust: bool = False  # quadrotor: action a0 = 0 means hover thrust (spec O2)
     backend: str = "mjx"  # Brax physics backend
     algo: str = "ttd3"  # "ttd3" (time-attenuating σ) | "td3" (constant σ)
     num_envs: int = 20  # M, parallel training envs
@@ -198,7 +199,7 @@ class EnvSpec(NamedTuple):
 def make_env(c: TrainConfig) -> EnvSpec:
     """The training env: the quadrotor tracking env, or a Brax env with a time limit."""
     if c.env == QUADROTOR:
-        env = TrackingEnv(make_config(c.env_preset))
+        env = TrackingEnv(quad_env_config(c))
         return EnvSpec(env, env.observation_size, env.action_size, env.episode_length)
     import contextlib
     import io
@@ -210,6 +211,11 @@ def make_env(c: TrainConfig) -> EnvSpec:
         env = brax_envs.get_environment(c.env, backend=c.backend)
     env = EpisodeWrapper(env, c.episode_length, action_repeat=1)
     return EnvSpec(env, env.observation_size, env.action_size, c.episode_length)
+
+
+def quad_env_config(c: TrainConfig):
+    """The quadrotor training env's config for this run."""
+    return make_config(c.env_preset, hover_centered_thrust=c.hover_centered_thrust)
 
 
 def _adam(lr):
@@ -386,7 +392,7 @@ def policy_controller(nets: Networks, actor_params) -> Controller:
 def _eval_quad(c: TrainConfig, nets: Networks, actor) -> dict:
     """Spiral-RT and LOS-RT (seed 0) with the paper's evaluation protocol (spec §2.5),
     both in one vmapped closed loop."""
-    env = TrackingEnv(make_config(c.env_preset).for_eval("los_rt"))
+    env = TrackingEnv(quad_env_config(c).for_eval("los_rt"))
     m = evaluate_on_tracks(env, policy_controller(nets, actor), test_tracks(env))
     out = {}
     for i, name in enumerate(("spiral", "los")):
@@ -426,7 +432,9 @@ def preset(name: str, **overrides) -> TrainConfig:
     """Named training configurations.
 
     ``paper``: the published quadrotor settings (spec §2.4), 3e6 transitions.
-    ``fast``: quadrotor, tuned for wall clock on a laptop CPU.
+    ``fast``: quadrotor with the ``practical`` env (10 ms actions, 50 ms look-ahead),
+    hover-centred thrust and rewards scaled by 0.01; aimed at a laptop CPU.
+    Status: still being tuned (see docs/results.md).
     ``mujoco``: the MuJoCo protocol (spec §2.7): 1 env, 1 update per step, τ = 0.005,
     c = 0.5, 1e6 steps, L_nom = 1000.
     """
@@ -435,6 +443,7 @@ def preset(name: str, **overrides) -> TrainConfig:
     elif name == "fast":
         base = TrainConfig(
             env_preset="practical",
+            hover_centered_thrust=True,
             num_envs=64,
             total_transitions=300_000,
             warmup_transitions=10_000,
@@ -442,7 +451,7 @@ def preset(name: str, **overrides) -> TrainConfig:
             batch_size=256,
             updates_per_step=8,
             epochs=20,
-            hp=Hyper(tau=0.005),
+            hp=Hyper(tau=0.005, reward_scale=0.01),
         )
     elif name == "mujoco":
         base = TrainConfig(
