@@ -501,33 +501,23 @@ def main(argv: list[str] | None = None) -> int:
     known, rest = pre.parse_known_args(argv)
     from ttd3_jax.runner import TrainingDiverged, run
 
-    if known.resume is not None:
-        if rest:
-            print(f"error: --resume continues the saved config; remove {' '.join(rest)}", file=sys.stderr)
-            return 2
-        try:
-            run(resume=known.resume)
-        except (FileNotFoundError, ValueError) as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
-        except TrainingDiverged as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 3
-        return 0
-    description = (
-        f"Train T-TD3 or TD3 (preset {known.preset!r}; defaults below are that preset's). Also: "
-        f"--preset {{{','.join(PRESETS)}}}, --out DIR (default runs), --resume RUN_DIR."
-    )
+    if known.resume is not None and rest:
+        print(f"error: --resume continues the saved config; remove {' '.join(rest)}", file=sys.stderr)
+        return 2
     try:
+        if known.resume is not None:
+            run(resume=known.resume)
+            return 0
+        description = (
+            f"Train T-TD3 or TD3 (preset {known.preset!r}; defaults below are that preset's). Also: "
+            f"--preset {{{','.join(PRESETS)}}}, --out DIR (default runs), --resume RUN_DIR."
+        )
+        # tyro reports a ValueError from TrainConfig validation itself and exits with status 2
         cfg = tyro.cli(TrainConfig, default=preset(known.preset), args=rest, description=description)
         if not any(a.startswith("--noise.schedule") for a in rest):
             cfg = with_algo(cfg, cfg.algo)
-    except ValueError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    try:
         run(cfg, out=known.out)
-    except ValueError as e:
+    except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except TrainingDiverged as e:
