@@ -341,3 +341,31 @@ def test_grad_of_return_through_env():
 def test_replace_keeps_validation():
     with pytest.raises(ValueError, match="rho1"):
         dataclasses.replace(make_config(), rho1=0.0)
+
+
+def test_los_rt_env_with_a_short_episode():
+    env = TrackingEnv(make_config("paper", episode_steps=1000).for_eval("los_rt", los_seed=2))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    s = jax.jit(env.step)(s, hover_action(env.config))
+    assert np.isfinite(float(s.reward))
+
+
+def test_track_frame_observation_is_translation_invariant():
+    cfg = make_config("practical", obs_frame="track").for_eval("los_rt")
+    env = TrackingEnv(cfg)
+    ps = env.reset(jax.random.PRNGKey(0)).pipeline_state
+    ps = ps.replace(k=jnp.asarray(500, jnp.int32))  # past the literal start p_d(0) = 0
+    shift = jnp.array([3.0, -2.0, 1.5])
+    track = ps.track.replace(seg=ps.track.seg.at[:, 0].add(shift))
+    moved = ps.replace(quad=ps.quad.replace(p=ps.quad.p + shift), track=track)
+    o1, _ = env.observe(ps)
+    o2, _ = env.observe(moved)
+    np.testing.assert_allclose(o1, o2, atol=1e-5)
+    ow, _ = TrackingEnv(dataclasses.replace(cfg, obs_frame="world")).observe(ps)
+    p_d = tr.position(ps.track, ps.k, cfg.dt)
+    np.testing.assert_allclose(o1[0:3], ow[0:3] - p_d, atol=1e-6)  # p - p_d,k
+    np.testing.assert_allclose(o1[10:13], ow[10:13] - p_d, atol=1e-6)  # p_d,k+L - p_d,k
+    np.testing.assert_allclose(o1[3:10], ow[3:10], atol=1e-6)
+    np.testing.assert_allclose(o1[13:], ow[13:], atol=1e-6)
+    with pytest.raises(ValueError, match="obs_frame"):
+        make_config("paper", obs_frame="body")

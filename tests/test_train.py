@@ -192,19 +192,8 @@ def test_sweep_over_hyperparameters_is_one_vmapped_program():
     c = tiny(epochs=1)
     t = make_trainer(c)
     hps = Hyper(lr_critic=jnp.array([1e-4, 1e-3]), beta=jnp.array([0.05, 0.2]))
-    fixed = (
-        "gamma",
-        "tau",
-        "lr_actor",
-        "sigma",
-        "sigma_end",
-        "lam",
-        "u_max",
-        "target_sigma",
-        "target_clip",
-        "reward_scale",
-    )
-    hp_axes = Hyper(lr_critic=0, beta=0, **dict.fromkeys(fixed))  # fmt: skip
+    none = {f.name: None for f in dataclasses.fields(Hyper)}
+    hp_axes = Hyper(**{**none, "lr_critic": 0, "beta": 0})  # sweep two leaves, share the rest
     keys = jnp.stack([seed_keys(c)[0]] * 2)
     _, m, ev = jax.jit(jax.vmap(t.train, in_axes=(0, hp_axes)))(keys, hps)
     assert m["critic_loss"].shape == (2, 1)
@@ -320,3 +309,56 @@ def test_brax_mjx_inverted_double_pendulum_smoke(tmp_path):
     assert np.isfinite(ret) and ret > 0  # IDP pays a positive alive bonus each step
     rows = read_metrics(summary["run_dir"])
     assert len(rows) == 2 and rows[-1]["env_steps"] == 4 * (20 + 2 * 40)
+
+
+# --------------------------------------------------------------------------- normaliser, lr
+
+
+def test_running_obs_stats_match_numpy():
+    from ttd3_jax import normalize as nrm
+
+    x = np.random.default_rng(0).normal(3.0, 2.0, size=(300, 5)).astype(np.float32)
+    s = nrm.init(5)
+    for chunk in np.split(x, [7, 100, 101, 250]):
+        s = nrm.update(s, jnp.asarray(chunk))
+    np.testing.assert_allclose(s.mean, x.mean(0), rtol=1e-4)
+    np.testing.assert_allclose(nrm.std(s), x.std(0), rtol=1e-3)
+    z = nrm.apply(s, jnp.asarray(x))
+    np.testing.assert_allclose(np.mean(np.asarray(z), 0), 0.0, atol=1e-3)
+    assert nrm.apply(None, jnp.asarray(x)) is not None and np.array_equal(nrm.apply(None, x), x)
+
+
+def test_lr_schedules_decay_to_zero():
+    from ttd3_jax.train import lr_fraction
+
+    for sched, mid in (("constant", 1.0), ("linear", 0.5), ("cosine", 0.5)):
+        c = tiny(lr_schedule=sched)
+        total = c.steps_per_epoch * c.epochs * c.updates_per_step
+        assert float(lr_fraction(c, jnp.asarray(0))) == pytest.approx(1.0)
+        assert float(lr_fraction(c, jnp.asarray(total // 2))) == pytest.approx(mid, abs=1e-6)
+        assert float(lr_fraction(c, jnp.asarray(total))) == pytest.approx(1.0 if sched == "constant" else 0.0)
+    with pytest.raises(ValueError, match="lr_schedule"):
+        tiny(lr_schedule="step")
+
+
+def test_linear_lr_schedule_reaches_the_optimiser():
+    c = tiny(lr_schedule="linear", hp=Hyper(lr_actor=1e-3, lr_critic=2e-3, reward_scale=0.01))
+    tr = make_trainer(c)
+    ts = jax.jit(tr.init)(jax.random.PRNGKey(0), c.hp)
+    ts, _ = jax.jit(tr.epoch)(ts, c.hp)
+    per_epoch = c.steps_per_epoch * c.updates_per_step
+    frac = 1.0 - (per_epoch - 1) / (per_epoch * c.epochs)
+    assert float(ts.critic_opt.hyperparams["learning_rate"]) == pytest.approx(2e-3 * frac, rel=1e-5)
+    assert float(ts.actor_opt.hyperparams["learning_rate"]) < 1e-3
+
+
+def test_normalised_run_stores_stats_and_evaluates():
+    c = tiny(normalize_obs=True)
+    tr = make_trainer(c)
+    ts = jax.jit(tr.init)(jax.random.PRNGKey(0), c.hp)
+    n0 = float(ts.obs_stats.count)
+    assert n0 == (c.warmup_steps + 1) * c.num_envs
+    ts, m = jax.jit(tr.epoch)(ts, c.hp)
+    assert float(ts.obs_stats.count) == n0 + c.steps_per_epoch * c.num_envs
+    ev = jax.jit(tr.evaluate)(ts)
+    assert np.isfinite(float(ev["spiral_tracking_error"]))

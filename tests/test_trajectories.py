@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from ttd3_jax import trajectories as tr
 from ttd3_jax.trajectories import (
     NUM_VALIDATION_TRACKS,
     PIECEWISE,
@@ -616,3 +617,13 @@ def test_training_generators_float64_dtypes():
     assert one.kind.dtype == jnp.int32 and one.seg_steps.dtype == jnp.int32
     # and the default is float32
     assert float_dtypes(jax.eval_shape(sample_train_track, jax.random.PRNGKey(0))) == {jnp.dtype(jnp.float32)}
+
+
+def test_los_test_instance_does_not_depend_on_the_horizon():
+    short = tr.los_test_track(3, num_segments=13, horizon_steps=1102)
+    std = tr.los_test_track(3)
+    long = tr.los_test_track(3, horizon_steps=6002)
+    k = jnp.arange(1100)
+    np.testing.assert_array_equal(tr.position(short, k, 1e-3), tr.position(std, k, 1e-3))
+    k = jnp.arange(3002)
+    np.testing.assert_array_equal(tr.position(std, k, 1e-3), tr.position(long, k, 1e-3))

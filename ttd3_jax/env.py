@@ -9,6 +9,10 @@ Observation at physics step k (17-D, raw units, O1)::
     [p_k (3, m), v_k (3, m/s), q_k (4, qw>=0), p_d,k+L (3, m), p_d,k+L - p_k (3, m),
      ||p_d,k' - p_k|| (1, m)]          (+ ω_k (3, rad/s) for the first_order/torque models)
 
+``obs_frame="track"`` moves the origin of the two absolute positions to p_d,k, so
+they read p_k - p_d,k and p_d,k+L - p_d,k (the policy no longer sees where in space
+the track is).
+
 with L = ``lookahead_k`` (1 in the paper) and k' = k (``err_ref="current"``) or k+1.
 Reward per physics step, with e' = ||p_d,k+1 - p_k+1|| after the step (R1-R3)::
 
@@ -41,6 +45,7 @@ from ttd3_jax.dynamics import QuadParams, QuadState, quat_from_axis_angle, quat_
 TRACK_MODES = ("train", "validation", "spiral_rt", "los_rt")
 ERR_REFS = ("current", "next")
 ERR_COSTS = ("paper", "squared")
+OBS_FRAMES = ("world", "track")
 PRESETS = ("paper", "practical")
 
 
@@ -64,6 +69,7 @@ class EnvConfig:
     # observation and action (O1, O2)
     err_ref: str = "current"
     lookahead_k: int = 1  # physics steps ahead for the observed reference point
+    obs_frame: str = "world"  # "track": positions relative to p_d,k (translation invariant)
     hover_centered_thrust: bool = False  # a0 = 0 means hover thrust
     # reward and termination (R1-R4)
     err_cost: str = "paper"
@@ -71,6 +77,7 @@ class EnvConfig:
     rho2: float = 0.01
     effort_weights: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)  # diag Ω
     effort_hover_relative: bool = False  # penalise (a - a_hover) instead of a
+    rho_vel: float = 0.0  # 1/(m/s): extra cost rho_vel ||v - v_ref|| per physics step (not in the paper)
     terminate: bool = True
     e_max: float = 2.0  # m
     crash_penalty: float = 400.0  # = rho1 r_e(e_max) action_repeat / (1 - 0.99)
@@ -113,6 +120,7 @@ class EnvConfig:
             positive(name, integer=True)
         for name in (
             "rho2",
+            "rho_vel",
             "crash_penalty",
             "init_pos",
             "init_vel",
@@ -127,6 +135,7 @@ class EnvConfig:
             non_negative(name)
         one_of("err_ref", ERR_REFS)
         one_of("err_cost", ERR_COSTS)
+        one_of("obs_frame", OBS_FRAMES)
         one_of("track", TRACK_MODES)
         if self.episode_steps % self.action_repeat:
             raise ValueError(
@@ -324,7 +333,7 @@ class TrackingEnv(Env):
             return jax.tree.map(lambda x: x[i], bank)
         if c.track == "spiral_rt":
             return tr.spiral_rt(c.tracks, n)
-        return tr.los_test_track(c.los_seed, c.tracks, num_segments=n, dt=c.dt)
+        return tr.los_test_track(c.los_seed, c.tracks, num_segments=n, dt=c.dt, horizon_steps=c.horizon_steps)
 
     def reset_with_track(self, rng: jax.Array, track: tr.Track) -> State:
         """New episode on a given track (used by evaluation over many tracks)."""
@@ -410,11 +419,15 @@ class TrackingEnv(Env):
             c.quad, quad, u, c.dt, wind if c.wind_sigma > 0 else None, c.rk4_substeps, c.renormalize
         )
         k = k + 1
-        if p_ref is None:
+        step_r = -c.rho2 * effort
+        if c.rho_vel > 0:
+            p_ref, v_ref, _ = tr.evaluate(track, k, c.dt)
+            step_r = step_r - c.rho_vel * jnp.linalg.norm(v_ref - quad.v)
+        elif p_ref is None:
             p_ref = tr.position(track, k, c.dt)
         e = jnp.linalg.norm(p_ref - quad.p)
         finite = jnp.isfinite(e) & _finite(quad)
-        step_r = -c.rho1 * error_cost(c, e) - c.rho2 * effort
+        step_r = step_r - c.rho1 * error_cost(c, e)
         reward = reward + jnp.where(~crashed & finite, step_r, 0.0)
         err_sum = err_sum + jnp.where(finite, e, jnp.inf)
         crashed = crashed | ~finite | (e > c.e_max)
@@ -467,7 +480,11 @@ class TrackingEnv(Env):
         else:
             p_err = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
         err = jnp.linalg.norm(p_err - p)
-        parts = [p, v, q, p_ahead, p_ahead - p, err[None]]
+        if c.obs_frame == "track":  # same 17 numbers with the origin moved to p_d,k
+            p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
+            parts = [p - p_now, v, q, p_ahead - p_now, p_ahead - p, err[None]]
+        else:
+            parts = [p, v, q, p_ahead, p_ahead - p, err[None]]
         if self._rates_in_obs:
             parts.append(x.w)
         obs = jnp.concatenate(parts)

@@ -7,6 +7,7 @@ A controller is a pair of pure functions ``init(env_state) -> carry`` and
 CLI::
 
     python -m ttd3_jax.evaluate --controller geometric        # Spiral-RT and LOS-RT seed 0
+    python -m ttd3_jax.evaluate --controller nmpc --nmpc-solve-every 10
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from ttd3_jax import trajectories as tr
 from ttd3_jax.env import PRESETS, EnvConfig, TrackingEnv, control_to_action, hover_action, make_config
 from ttd3_jax.geometric import GeometricGains, geometric_control
 
-CONTROLLERS = ("geometric", "hover")
+CONTROLLERS = ("geometric", "hover", "nmpc")
 
 
 class Controller(NamedTuple):
@@ -110,7 +111,8 @@ def test_tracks(env: TrackingEnv, los_seeds=(0,)) -> tr.Track:
     c = env.config
     n = env.num_segments
     tracks = [tr.spiral_rt(c.tracks, n)] + [
-        tr.los_test_track(s, c.tracks, num_segments=n, dt=c.dt) for s in los_seeds
+        tr.los_test_track(s, c.tracks, num_segments=n, dt=c.dt, horizon_steps=c.horizon_steps)
+        for s in los_seeds
     ]
     return jax.tree.map(lambda *x: jnp.stack(x), *tracks)
 
@@ -126,7 +128,15 @@ def evaluate_on_tracks(env: TrackingEnv, controller: Controller, tracks: tr.Trac
     return jax.vmap(one)(tracks)
 
 
-def make_controller(name: str, cfg: EnvConfig) -> Controller:
+def make_controller(name: str, cfg: EnvConfig, **options) -> Controller:
+    """Controller ``name`` for env config ``cfg``; ``options`` go to the controller's
+    config (``nmpc``: fields of :class:`ttd3_jax.nmpc.NMPCConfig`)."""
+    if name == "nmpc":
+        from ttd3_jax.nmpc import NMPCConfig, nmpc_controller  # nmpc imports this module
+
+        return nmpc_controller(cfg, NMPCConfig(**options))
+    if options:
+        raise ValueError(f"controller {name!r} takes no options, got {sorted(options)}")
     if name == "geometric":
         return geometric_controller(cfg)
     if name == "hover":
@@ -134,10 +144,11 @@ def make_controller(name: str, cfg: EnvConfig) -> Controller:
     raise ValueError(f"unknown controller {name!r}; allowed: {CONTROLLERS}")
 
 
-def evaluate_track(cfg: EnvConfig, controller_name: str, track: str, los_seed: int = 0):
-    """Compile and run one evaluation episode; returns (metrics dict, compile s, run s)."""
+def evaluate_track(cfg: EnvConfig, controller_name: str, track: str, los_seed: int = 0, **options):
+    """Compile and run one evaluation episode; returns (metrics dict, compile s, run s).
+    ``options`` are passed to :func:`make_controller`."""
     env = TrackingEnv(cfg.for_eval(track, los_seed=los_seed, wind_sigma=0.0))
-    ctrl = make_controller(controller_name, env.config)
+    ctrl = make_controller(controller_name, env.config, **options)
 
     def run(key):
         r = closed_loop(env, ctrl, env.reset(key))
@@ -164,18 +175,42 @@ def main(argv=None) -> int:
     ap.add_argument("--track", default="all", choices=("all", *tr.TEST_TRACKS))
     ap.add_argument("--los-seed", type=int, default=0, help="LOS-RT test instance (0 = headline)")
     ap.add_argument("--json", default=None, help="also write the metrics to this JSON file")
+    ap.add_argument("--nmpc-horizon", type=int, default=None, help="NMPC nodes N (nmpc only)")
+    ap.add_argument(
+        "--nmpc-solve-every", type=int, default=None, help="NMPC control steps between re-solves (nmpc only)"
+    )
+    ap.add_argument("--nmpc-weight-scale", type=float, default=None, help="NMPC state-weight scale")
     args = ap.parse_args(argv)
     if args.los_seed < 0:
         ap.error(f"--los-seed must be >= 0, got {args.los_seed}")
+    options = {
+        name: value
+        for name, value in (
+            ("horizon", args.nmpc_horizon),
+            ("solve_every", args.nmpc_solve_every),
+            ("weight_scale", args.nmpc_weight_scale),
+        )
+        if value is not None
+    }
+    if options and args.controller != "nmpc":
+        ap.error("--nmpc-* options need --controller nmpc")
+    if options:
+        from ttd3_jax.nmpc import NMPCConfig
+
+        try:
+            NMPCConfig(**options)
+        except ValueError as e:
+            ap.error(str(e))
     cfg = make_config(args.preset)
     tracks = tr.TEST_TRACKS if args.track == "all" else (args.track,)
-    print(f"controller={args.controller} preset={args.preset} device={jax.devices()[0].platform}")
+    opts = "".join(f" {k}={v}" for k, v in options.items())
+    print(f"controller={args.controller}{opts} preset={args.preset} device={jax.devices()[0].platform}")
     header = f"{'track':<10} {'Σ||e|| [m]':>11} {'RMSE [m]':>9} {'max [m]':>8} {'crash':>5} "
     header += f"{'Σ||a||':>8} {'Σaᵀa':>8} {'compile s':>9} {'run ms':>7}"
     print(header)
     results = {}
     for name in tracks:
-        m, tc, trun = evaluate_track(cfg, args.controller, name, args.los_seed)
+        m, tc, trun = evaluate_track(cfg, args.controller, name, args.los_seed, **options)
         results[name] = dict(m, compile_s=tc, run_s=trun)
         print(
             f"{name:<10} {m['tracking_error']:>11.2f} {m['rmse']:>9.4f} {m['max_error']:>8.4f} "
@@ -185,7 +220,14 @@ def main(argv=None) -> int:
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(
-                {"controller": args.controller, "preset": args.preset, "results": results}, fh, indent=2
+                {
+                    "controller": args.controller,
+                    "options": options,
+                    "preset": args.preset,
+                    "results": results,
+                },
+                fh,
+                indent=2,
             )
         print(f"wrote {args.json}")
     return 0

@@ -26,8 +26,17 @@ def critic_loss(critic_params, nets: Networks, target_actor, target_critic, batc
     return loss, {"q_mean": jnp.mean(q[0])}
 
 
-def actor_loss(actor_params, nets: Networks, critic_params, obs: jax.Array) -> jax.Array:
-    """Deterministic policy gradient objective through the first critic."""
+def actor_loss(
+    actor_params, nets: Networks, critic_params, batch: Transition, key: jax.Array, hp
+) -> jax.Array:
+    """Deterministic policy gradient objective through the first critic, plus the optional
+    CAPS smoothness terms (Mysore et al. 2021): ``hp.smooth_time`` · mean ||π(s) − π(s')||²
+    and ``hp.smooth_space`` · mean ||π(s) − π(s + ``hp.smooth_sigma`` ξ)||² (off at 0)."""
+    obs = batch.obs
     a = nets.actor.apply(actor_params, obs)
     q1 = twin_q(nets, jax.tree.map(lambda p: p[:1], critic_params), obs, a)[0]
-    return -jnp.mean(q1)
+    a_next = nets.actor.apply(actor_params, batch.next_obs)
+    a_near = nets.actor.apply(actor_params, obs + hp.smooth_sigma * jax.random.normal(key, obs.shape))
+    smooth_t = jnp.mean(jnp.sum((a - a_next) ** 2, -1))
+    smooth_s = jnp.mean(jnp.sum((a - a_near) ** 2, -1))
+    return -jnp.mean(q1) + hp.smooth_time * smooth_t + hp.smooth_space * smooth_s

@@ -55,6 +55,40 @@ def load_config(run_dir: str) -> TrainConfig:
         return config_from_dict(json.load(fh))
 
 
+def per_seed(fn, c: TrainConfig, in_axes: tuple):
+    """``fn`` mapped over the leading seed axis of the arguments marked 0 in ``in_axes``.
+
+    A single seed skips ``vmap`` (keeping the axis of length 1), so the trainer's
+    ``lax.cond`` branches stay branches instead of becoming selects that run both sides.
+    """
+    if c.num_seeds > 1:
+        return jax.vmap(fn, in_axes=in_axes)
+
+    def one(*args):
+        args = [
+            jax.tree.map(lambda x: x[0], a) if ax == 0 else a for a, ax in zip(args, in_axes, strict=True)
+        ]
+        return jax.tree.map(lambda x: x[None], fn(*args))
+
+    return one
+
+
+def load_train_state(run_dir: str, epoch: int | None = None):
+    """``(config, trainer, state)`` of a run directory's checkpoint ``epoch`` (default: the
+    latest).  ``state`` has the seed axis in front, as the runner saved it."""
+    c = load_config(run_dir)
+    trainer = make_trainer(c)
+    mngr = ckpt.manager(run_dir)
+    epoch = ckpt.latest_epoch(mngr) if epoch is None else epoch
+    if epoch is None or epoch not in mngr.all_steps():
+        saved = sorted(mngr.all_steps())
+        raise FileNotFoundError(
+            f"no checkpoint {'' if epoch is None else epoch} in {run_dir!r}; saved: {saved}"
+        )
+    like = jax.eval_shape(per_seed(trainer.init, c, (0, None)), seed_keys(c), c.hp)
+    return c, trainer, ckpt.restore(mngr, epoch, like)
+
+
 # --------------------------------------------------------------------------- memory
 
 
@@ -158,6 +192,28 @@ def plot_learning_curve(run_dir: str, c: TrainConfig) -> str | None:
     return path
 
 
+class _LiveBar:
+    """In-epoch progress on a terminal: vector steps done and steps/s, redrawn in place."""
+
+    def __init__(self, c: TrainConfig):
+        self.c, self.epoch, self.t0 = c, 0, time.perf_counter()
+
+    def start(self, epoch: int) -> None:
+        self.epoch, self.t0 = epoch, time.perf_counter()
+
+    def __call__(self, done) -> None:
+        c = self.c
+        done = int(np.max(np.asarray(done)))
+        frac = done / c.steps_per_epoch
+        sps = c.num_seeds * c.num_envs * done / max(time.perf_counter() - self.t0, 1e-9)
+        bar = "#" * int(20 * frac) + "." * (20 - int(20 * frac))
+        sys.stdout.write(f"\r  epoch {self.epoch}/{c.epochs} [{bar}] {100 * frac:5.1f}%  {sps:8.3g} steps/s ")
+        sys.stdout.flush()
+
+    def clear(self) -> None:
+        sys.stdout.write("\r" + " " * 72 + "\r")
+
+
 def _progress_line(epoch, epochs, m, ev, sps, c: TrainConfig) -> str:
     width = 20
     done = int(width * epoch / epochs)
@@ -202,7 +258,8 @@ def run(
         run_dir = resume
     elif c is None:
         raise ValueError("run() needs a TrainConfig or a run directory to resume")
-    trainer = make_trainer(c)
+    live = _LiveBar(c) if verbose and sys.stdout.isatty() else None
+    trainer = make_trainer(c, on_progress=live)
     check_memory(c, trainer.spec.obs_size, trainer.spec.action_size)
     if resume is None:
         run_dir = new_run_dir(out, c)
@@ -210,9 +267,9 @@ def run(
             json.dump(config_to_dict(c), fh, indent=2)
     mngr = ckpt.manager(run_dir)
     keys, hp = seed_keys(c), c.hp
-    init_fn = jax.jit(jax.vmap(trainer.init, in_axes=(0, None)))
-    epoch_fn = jax.jit(jax.vmap(trainer.epoch, in_axes=(0, None)), donate_argnums=0)
-    eval_fn = jax.jit(jax.vmap(trainer.evaluate))
+    init_fn = jax.jit(per_seed(trainer.init, c, (0, None)))
+    epoch_fn = jax.jit(per_seed(trainer.epoch, c, (0, None)), donate_argnums=0)
+    eval_fn = jax.jit(per_seed(trainer.evaluate, c, (0,)))
 
     t0 = time.perf_counter()
     start = ckpt.latest_epoch(mngr) if resume is not None else None
@@ -243,6 +300,8 @@ def run(
     last = c.epochs if stop_after is None else min(c.epochs, start + stop_after)
     for epoch in range(start + 1, last + 1):
         te = time.perf_counter()
+        if live is not None:
+            live.start(epoch)
         steps_before = float(np.mean(np.asarray(ts.n_tr)))
         ts, m = epoch_c(ts, hp)
         m = jax.device_get(m)
@@ -262,6 +321,8 @@ def run(
             for k, v in rows[0].items():
                 tb.add_scalar(k, v, int(rows[0]["env_steps"]))
         ckpt.save(mngr, epoch, ts)
+        if live is not None:
+            live.clear()
         log(_progress_line(epoch, c.epochs, m, ev, sps, c), flush=True)
     if last < c.epochs:
         log(f"stopped after epoch {last}/{c.epochs}; continue with --resume {run_dir}")
@@ -296,13 +357,13 @@ def _check_finite(m, ts, epoch: int, c: TrainConfig, run_dir: str, mngr) -> None
 
 
 def _finish(run_dir: str, c: TrainConfig, ev, compile_s: float, run_s: float) -> dict:
-    per_seed = [{k: float(np.asarray(v)[i]) for k, v in ev.items()} for i in range(c.num_seeds)]
+    seed_evals = [{k: float(np.asarray(v)[i]) for k, v in ev.items()} for i in range(c.num_seeds)]
     summary = {
         "run_dir": run_dir,
         "env": c.env,
         "algo": c.algo,
         "seeds": list(range(c.seed, c.seed + c.num_seeds)),
-        "final_eval": per_seed,
+        "final_eval": seed_evals,
         "compile_s": compile_s,
         "train_s": run_s,
         "device": jax.devices()[0].device_kind,
@@ -313,7 +374,7 @@ def _finish(run_dir: str, c: TrainConfig, ev, compile_s: float, run_s: float) ->
             bool(s["spiral_tracking_error"] <= PAPER_TTD3["spiral_tracking_error"] and
                  s["los_tracking_error"] <= PAPER_TTD3["los_tracking_error"] and
                  s["spiral_crashed"] == 0 and s["los_crashed"] == 0)
-            for s in per_seed
+            for s in seed_evals
         ]  # fmt: skip
     with open(os.path.join(run_dir, "eval.json"), "w") as fh:
         json.dump(

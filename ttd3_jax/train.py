@@ -28,6 +28,7 @@ from flax import struct
 
 from ttd3_jax import buffer as rb
 from ttd3_jax import noise as nz
+from ttd3_jax import normalize as nrm
 from ttd3_jax.env import PRESETS as ENV_PRESETS
 from ttd3_jax.env import TrackingEnv, make_config
 from ttd3_jax.evaluate import Controller, evaluate_on_tracks, test_tracks
@@ -42,6 +43,7 @@ BRAX_ENVS = (
 ALGOS = ("ttd3", "td3")
 TARGET_NOISES = ("fixed", "shared_sigma")
 BACKENDS = ("mjx", "generalized", "positional", "spring")
+LR_SCHEDULES = ("constant", "linear", "cosine")
 
 
 @struct.dataclass
@@ -60,6 +62,9 @@ class Hyper:
     target_sigma: float = 0.2  # σ̃, target-policy smoothing std
     target_clip: float = 0.1  # c, target-policy smoothing clip
     reward_scale: float = 1.0  # rewards are stored times this (keeps Q values O(1..100))
+    smooth_time: float = 0.0  # CAPS weight on ||π(s) − π(s')||² in the actor loss (0 = TD3)
+    smooth_space: float = 0.0  # CAPS weight on ||π(s) − π(s + smooth_sigma ξ)||²
+    smooth_sigma: float = 0.05  # std of the CAPS state perturbation, in network-input units
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,7 +83,9 @@ class TrainConfig:
     batch_size: int = 256
     updates_per_step: int = 20  # G, gradient updates per vector env step
     policy_delay: int = 2  # d
+    lr_schedule: str = "constant"  # "linear" / "cosine": learning rates decay to 0 over the run
     hidden: tuple[int, ...] = (256, 256)
+    normalize_obs: bool = False  # running mean/std normalisation of observations (nets' input)
     epochs: int = 50  # progress / eval / checkpoint points
     eval_episodes: int = 10  # Brax envs: deterministic episodes per evaluation
     episode_length: int = 1000  # Brax envs: steps per episode
@@ -121,6 +128,7 @@ def validate(c: TrainConfig) -> None:
     need(c.env_preset in ENV_PRESETS, f"env_preset must be one of {ENV_PRESETS}, got {c.env_preset!r}")
     need(c.backend in BACKENDS, f"backend must be one of {BACKENDS}, got {c.backend!r}")
     need(c.algo in ALGOS, f"algo must be one of {ALGOS}, got {c.algo!r}")
+    need(c.lr_schedule in LR_SCHEDULES, f"lr_schedule must be one of {LR_SCHEDULES}, got {c.lr_schedule!r}")
     need(
         c.target_noise in TARGET_NOISES,
         f"target_noise must be one of {TARGET_NOISES}, got {c.target_noise!r}",
@@ -154,7 +162,8 @@ def validate(c: TrainConfig) -> None:
              f"hp.{name} must be in {'(0, 1]' if name == 'tau' else '[0, 1)'}, got {v!r}")  # fmt: skip
     for name in ("lr_actor", "lr_critic", "u_max", "reward_scale"):
         need(getattr(h, name) > 0, f"hp.{name} must be > 0, got {getattr(h, name)!r}")
-    for name in ("sigma", "sigma_end", "lam", "target_sigma", "target_clip"):
+    for name in ("sigma", "sigma_end", "lam", "target_sigma", "target_clip", "smooth_time", "smooth_space",
+                 "smooth_sigma"):  # fmt: skip
         need(getattr(h, name) >= 0, f"hp.{name} must be >= 0, got {getattr(h, name)!r}")
     need(0 <= h.beta <= 1, f"hp.beta must be in [0, 1], got {h.beta!r}")
 
@@ -183,6 +192,7 @@ class TrainState:
     buffer: rb.ReplayBuffer
     env_state: object  # batched Brax State of the training envs
     ep_return: jax.Array  # (num_envs,) return of the running episodes
+    obs_stats: nrm.ObsStats  # running observation statistics (used if normalize_obs)
     noise: nz.NoiseState
     key: jax.Array
     n_tr: jax.Array  # int32, transitions collected
@@ -222,6 +232,19 @@ def _adam(lr):
     return optax.inject_hyperparams(optax.adam)(learning_rate=lr)
 
 
+def _with_lr(opt_state, lr):
+    """The optimiser state with its (injected) learning rate set to ``lr``."""
+    return opt_state._replace(hyperparams={**opt_state.hyperparams, "learning_rate": lr})
+
+
+def lr_fraction(c: TrainConfig, n_upd: jax.Array) -> jax.Array:
+    """Learning-rate multiplier after ``n_upd`` updates under ``c.lr_schedule``."""
+    if c.lr_schedule == "constant":
+        return jnp.ones(())
+    x = jnp.clip(n_upd / max(1, c.steps_per_epoch * c.epochs * c.updates_per_step), 0.0, 1.0)
+    return 1.0 - x if c.lr_schedule == "linear" else 0.5 * (1.0 + jnp.cos(jnp.pi * x))
+
+
 def _where(mask, a, b):
     """Per-env select between two batched pytrees (mask (n,))."""
     return jax.tree.map(lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
@@ -242,16 +265,25 @@ class Trainer(NamedTuple):
     train: Callable  # (key, hp) -> (ts, per-epoch metrics, per-epoch eval): fully fused
 
 
-def make_trainer(c: TrainConfig) -> Trainer:
-    """Build the pure training functions for config ``c`` (see module docstring)."""
+PROGRESS_TICKS = 50  # host progress callbacks per epoch (when ``on_progress`` is given)
+
+
+def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = None) -> Trainer:
+    """Build the pure training functions for config ``c`` (see module docstring).
+
+    ``on_progress(vector_steps_done_in_epoch)``, if given, is called from the compiled
+    epoch about ``PROGRESS_TICKS`` times per epoch (a host callback; values unchanged)."""
     spec = make_env(c)
     env, n = spec.env, c.num_envs
     noise_cfg = c.noise
     nets = make_networks(spec.action_size, c.hidden)
     v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
 
-    def policy(params, obs):
-        return nets.actor.apply(params, obs)
+    def stats(ts: TrainState):
+        return ts.obs_stats if c.normalize_obs else None
+
+    def policy(ts: TrainState, obs):
+        return nets.actor.apply(ts.actor, nrm.apply(stats(ts), obs))
 
     def _collect(ts: TrainState, hp: Hyper, actions: jax.Array, key: jax.Array):
         """Step all envs with ``actions``; store transitions; auto-reset finished envs."""
@@ -275,6 +307,7 @@ def make_trainer(c: TrainConfig) -> Trainer:
         )
         ts = ts.replace(
             env_state=new_state,
+            obs_stats=nrm.update(ts.obs_stats, nxt.obs) if c.normalize_obs else ts.obs_stats,
             ep_return=jnp.where(done, 0.0, ep_return),
             buffer=rb.insert(ts.buffer, tr),
             n_tr=ts.n_tr + n,
@@ -294,6 +327,7 @@ def make_trainer(c: TrainConfig) -> Trainer:
             buffer=rb.init(c.buffer_capacity, spec.obs_size, spec.action_size),
             env_state=v_reset(jax.random.split(k_env, n)),
             ep_return=jnp.zeros(n),
+            obs_stats=nrm.init(spec.obs_size),
             noise=nz.init(noise_cfg, hp),
             key=k_run,
             n_tr=jnp.zeros((), jnp.int32),
@@ -305,18 +339,26 @@ def make_trainer(c: TrainConfig) -> Trainer:
             a = jax.random.uniform(k_a, (n, spec.action_size), minval=-1.0, maxval=1.0)
             return _collect(ts, hp, a, k_r)[0], None
 
+        if c.normalize_obs:
+            ts = ts.replace(obs_stats=nrm.update(ts.obs_stats, ts.env_state.obs))
         ts, _ = jax.lax.scan(warm, ts, jax.random.split(k_warm, c.warmup_steps))
         return ts
 
     def _update(ts: TrainState, hp: Hyper, key: jax.Array):
         """One critic step, the σ update and, every d-th update, the actor + target step."""
-        k_batch, k_target = jax.random.split(key)
+        k_batch, k_target, k_smooth = jax.random.split(key, 3)
         batch = rb.sample(ts.buffer, k_batch, c.batch_size)
+        if c.normalize_obs:
+            batch = batch.replace(
+                obs=nrm.apply(ts.obs_stats, batch.obs), next_obs=nrm.apply(ts.obs_stats, batch.next_obs)
+            )
         target_std = hp.target_sigma if c.target_noise == "fixed" else nz.std(noise_cfg, ts.noise.sigma)
         (c_loss, aux), grads = jax.value_and_grad(critic_loss, has_aux=True)(
             ts.critic, nets, ts.target_actor, ts.target_critic, batch, k_target, hp, target_std
         )
-        updates, critic_opt = _adam(hp.lr_critic).update(grads, ts.critic_opt, ts.critic)
+        frac = lr_fraction(c, ts.n_upd)
+        critic_opt = _with_lr(ts.critic_opt, hp.lr_critic * frac)
+        updates, critic_opt = _adam(hp.lr_critic).update(grads, critic_opt, ts.critic)
         critic = optax.apply_updates(ts.critic, updates)
         n_upd = ts.n_upd + 1
         noise = nz.update(
@@ -325,8 +367,9 @@ def make_trainer(c: TrainConfig) -> Trainer:
         ts = ts.replace(critic=critic, critic_opt=critic_opt, noise=noise, n_upd=n_upd)
 
         def actor_step(ts):
-            a_loss, g = jax.value_and_grad(actor_loss)(ts.actor, nets, ts.critic, batch.obs)
-            upd, actor_opt = _adam(hp.lr_actor).update(g, ts.actor_opt, ts.actor)
+            a_loss, g = jax.value_and_grad(actor_loss)(ts.actor, nets, ts.critic, batch, k_smooth, hp)
+            actor_opt = _with_lr(ts.actor_opt, hp.lr_actor * frac)
+            upd, actor_opt = _adam(hp.lr_actor).update(g, actor_opt, ts.actor)
             actor = optax.apply_updates(ts.actor, upd)
             ts = ts.replace(
                 actor=actor,
@@ -346,7 +389,7 @@ def make_trainer(c: TrainConfig) -> Trainer:
         ts = ts.replace(key=key)
         obs = ts.env_state.obs
         std = nz.std(noise_cfg, ts.noise.sigma)
-        a = policy(ts.actor, obs) + std * jax.random.normal(k_noise, (n, spec.action_size))
+        a = policy(ts, obs) + std * jax.random.normal(k_noise, (n, spec.action_size))
         ts, ret_sum, ret_n = _collect(ts, hp, jnp.clip(a, -1.0, 1.0), k_reset)
         ts, (c_loss, a_loss, q) = jax.lax.scan(
             lambda t, k: _update(t, hp, k), ts, jax.random.split(k_upd, c.updates_per_step)
@@ -354,10 +397,18 @@ def make_trainer(c: TrainConfig) -> Trainer:
         out = dict(critic_loss=jnp.mean(c_loss), actor_loss=jnp.nanmean(a_loss), q_mean=jnp.mean(q))
         return ts, (out, ret_sum, ret_n)
 
+    every = max(1, c.steps_per_epoch // PROGRESS_TICKS)
+
+    def _tick(i):
+        if on_progress is not None:
+            jax.lax.cond((i + 1) % every == 0, lambda: jax.debug.callback(on_progress, i + 1), lambda: None)
+
     def _epoch(ts: TrainState, hp: Hyper):
-        ts, (out, ret_sum, ret_n) = jax.lax.scan(
-            lambda t, _: _vector_step(t, hp), ts, None, c.steps_per_epoch
-        )
+        def body(t, i):
+            _tick(i)
+            return _vector_step(t, hp)
+
+        ts, (out, ret_sum, ret_n) = jax.lax.scan(body, ts, jnp.arange(c.steps_per_epoch))
         m = {k: jnp.nanmean(v) for k, v in out.items()}
         n_ep = jnp.sum(ret_n)
         m.update(
@@ -369,7 +420,9 @@ def make_trainer(c: TrainConfig) -> Trainer:
         return ts, m
 
     def _evaluate(ts: TrainState):
-        return _eval_quad(c, nets, ts.actor) if c.env == QUADROTOR else _eval_brax(c, spec, nets, ts.actor)
+        if c.env == QUADROTOR:
+            return _eval_quad(c, nets, ts.actor, stats(ts))
+        return _eval_brax(c, spec, nets, ts.actor, stats(ts))
 
     def _train(key, hp: Hyper):
         ts = _init(key, hp)
@@ -384,30 +437,35 @@ def make_trainer(c: TrainConfig) -> Trainer:
     return Trainer(c, spec, nets, _init, _epoch, _evaluate, _train)
 
 
-def policy_controller(nets: Networks, actor_params) -> Controller:
-    """The deterministic policy as an :class:`~ttd3_jax.evaluate.Controller`."""
-    return Controller(init=lambda s: (), act=lambda carry, s: (nets.actor.apply(actor_params, s.obs), carry))
+def policy_controller(nets: Networks, actor_params, obs_stats: nrm.ObsStats | None = None) -> Controller:
+    """The deterministic policy as an :class:`~ttd3_jax.evaluate.Controller` (``obs_stats``:
+    the run's observation normaliser, ``None`` when it did not normalise)."""
+
+    def act(carry, s):
+        return nets.actor.apply(actor_params, nrm.apply(obs_stats, s.obs)), carry
+
+    return Controller(init=lambda s: (), act=act)
 
 
-def _eval_quad(c: TrainConfig, nets: Networks, actor) -> dict:
+def _eval_quad(c: TrainConfig, nets: Networks, actor, obs_stats) -> dict:
     """Spiral-RT and LOS-RT (seed 0) with the paper's evaluation protocol (spec §2.5),
     both in one vmapped closed loop."""
     env = TrackingEnv(quad_env_config(c).for_eval("los_rt"))
-    m = evaluate_on_tracks(env, policy_controller(nets, actor), test_tracks(env))
+    m = evaluate_on_tracks(env, policy_controller(nets, actor, obs_stats), test_tracks(env))
     out = {}
     for i, name in enumerate(("spiral", "los")):
         out.update({f"{name}_{k}": v[i] for k, v in m.items()})
     return out
 
 
-def _eval_brax(c: TrainConfig, spec: EnvSpec, nets: Networks, actor) -> dict:
+def _eval_brax(c: TrainConfig, spec: EnvSpec, nets: Networks, actor, obs_stats) -> dict:
     """Mean undiscounted return of ``eval_episodes`` deterministic episodes (fixed keys)."""
     env = spec.env
     s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(12345), c.eval_episodes))
 
     def body(carry, _):
         s, ret, alive = carry
-        s = jax.vmap(env.step)(s, nets.actor.apply(actor, s.obs))
+        s = jax.vmap(env.step)(s, nets.actor.apply(actor, nrm.apply(obs_stats, s.obs)))
         ret = ret + alive * s.reward
         return (s, ret, alive * (1.0 - s.done)), None
 

@@ -272,6 +272,20 @@ def _los_tables(
     return starts, vel
 
 
+LOS_BASE_DRAWS = 31  # segments of a 3000-step LOS-RT track (S = 100)
+
+
+def _prefix_uniform(key: jax.Array, n: int, dtype, lo, hi) -> jax.Array:
+    """n uniform draws whose first values do not depend on n: the first
+    ``LOS_BASE_DRAWS`` come from ``key``, any further ones from ``fold_in(key, 1)``.
+    A test instance is then the same track whatever horizon it is built for."""
+    base = jax.random.uniform(key, (LOS_BASE_DRAWS,), dtype, lo, hi)
+    if n <= LOS_BASE_DRAWS:
+        return base[:n]
+    extra = jax.random.uniform(jax.random.fold_in(key, 1), (n - LOS_BASE_DRAWS,), dtype, lo, hi)
+    return jnp.concatenate([base, extra])
+
+
 def los_rt(
     key: jax.Array,
     cfg: TrackConfig = TrackConfig(),
@@ -289,8 +303,8 @@ def los_rt(
     n = _segments(num_segments, num_segments_for(horizon_steps, S), horizon_steps)
     k_theta, k_speed = jax.random.split(key)
     f = _float()
-    thetas = jax.random.uniform(k_theta, (n,), f, -cfg.los_theta_max, cfg.los_theta_max)
-    speeds = jax.random.uniform(k_speed, (n,), f, cfg.los_speed[0], cfg.los_speed[1])
+    thetas = _prefix_uniform(k_theta, n, f, -cfg.los_theta_max, cfg.los_theta_max)
+    speeds = _prefix_uniform(k_speed, n, f, cfg.los_speed[0], cfg.los_speed[1])
     starts, vel = _los_tables(
         thetas,
         speeds,

@@ -1,0 +1,343 @@
+"""Nonlinear MPC baseline in pure JAX (spec §2.6): Gauss-Newton SQP, single shooting, RTI.
+
+Model
+    The environment's own model (:func:`ttd3_jax.dynamics.rk4_step` with the env's
+    :class:`~ttd3_jax.dynamics.QuadParams`, rate model included) with the input held
+    constant over each node interval: node i -> i+1 is ``node_substeps`` RK4 steps
+    covering ``dt_node`` seconds.  The plan ``U`` (N, 4) is in physical units
+    ``[thrust, ω_x, ω_y, ω_z]`` (thrust in the env's unit) inside the env's box
+    ``[thrust_min, thrust_max] × [rate_min, rate_max]³``.  Wind is not modelled.
+
+Cost (rpg_mpc default weights, ``Q`` multiplied by ``weight_scale``, default 4 from
+the validation-track tuning in ``experiments/tune_nmpc.py``)::
+
+    J(U) = ½ Σ_{i=1..N} [ (p_i − p_ref,i)ᵀ Q_p (p_i − p_ref,i) + (v_i − v_ref,i)ᵀ Q_v (v_i − v_ref,i)
+                          + vec(q_ref,i⁻¹ ⊗ q_i)ᵀ Q_q vec(q_ref,i⁻¹ ⊗ q_i) ]
+         + ½ Σ_{i=0..N−1} (ũ_i − ũ_ref,i)ᵀ R (ũ_i − ũ_ref,i)
+
+References are the analytic p/v/a of the track (:func:`ttd3_jax.trajectories.evaluate`)
+at the node times (physics step ``k + round(i·dt_node/dt)``), so the controller has
+full preview.  ``q_ref`` follows from differential flatness: body z ∥ a_ref + g with
+zero heading, i.e. the minimal ("tilt-only") rotation from world z to
+a_ref + g, as rpg's ``acc_and_heading_to_orientation`` with heading 0.  The input
+reference is ``(‖a_ref + g‖, 0, 0, 0)``.  The quaternion error uses the sign
+with non-negative scalar part (q and −q are the same attitude).
+
+Input-cost scaling.  The input residual is taken on ``ũ = (c, ω)`` with the
+*mass-normalised* collective thrust ``c`` (m/s², = f/m under ``thrust_units="newton"``)
+and the rates in rad/s, exactly the input of rpg_mpc, so ``R = diag(w_input)`` has
+the same meaning under both thrust units; in newton units this is
+``R_f = w_input[0]/m²`` on the thrust in N.
+
+Solver (per solve, ``iters`` Gauss-Newton iterations)
+    r(U) stacks the weighted state residuals of all nodes (9 per node); its Jacobian
+    ``J`` (9N × 4N) comes from ``jax.jacfwd`` through a ``lax.scan`` rollout.  The
+    input residual is linear in U, so ``H = JᵀJ + R + reg·I`` and
+    ``g = Jᵀr + R(U − U_ref)``.  The box QP ``min ½ΔUᵀHΔU + gᵀΔU, lb ≤ U + ΔU ≤ ub`` is
+    solved by FISTA (``fista_iters`` projected steps of 1/L) on Jacobi-scaled
+    variables ``ΔU = D z`` with ``D = diag(H)^{-½}`` (a diagonal scaling keeps the box a
+    box and evens out thrust-vs-rate units); L is 1.1 × the power-iteration estimate
+    (``power_iters``) of λ_max(DHD).  The step is then ``U + αΔU`` with the first α in
+    (1, ½, ¼, ⅛) that lowers the true cost J (all four are evaluated in one batch);
+    if none does, U is kept.  ``line_search=False`` always takes α = 1.
+
+Closed loop (:func:`nmpc_controller`)
+    The carry holds the plan ``U``, the control steps since it was computed and the
+    number of solves.  The first call runs ``sqp_iters_first`` iterations from
+    ``U_ref``; later ones re-solve every ``solve_every`` control steps with
+    ``sqp_iters`` iterations (1 = real-time iteration) from the previous plan shifted
+    by the elapsed time (linear interpolation between nodes, last node repeated).
+    Between solves the plan is applied as planned (zero-order hold per node).
+    Everything is jit/vmap-able; there is no Python per step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from ttd3_jax import trajectories as tr
+from ttd3_jax.dynamics import QuadParams, QuadState, quat_conj, quat_mul, rk4_step
+
+LINE_SEARCH_ALPHAS = (1.0, 0.5, 0.25, 0.125)
+
+
+@dataclasses.dataclass(frozen=True)
+class NMPCConfig:
+    """NMPC settings (spec §2.6). Units: seconds; weights on m, m/s, rad-ish quaternion
+    vector part, and (m/s², rad/s) inputs (see the module docstring)."""
+
+    horizon: int = 20  # N, number of nodes (inputs)
+    dt_node: float = 0.05  # s, node spacing (N·dt_node = 1 s horizon)
+    w_pos: tuple[float, float, float] = (200.0, 200.0, 500.0)  # diag Q_p, 1/m²
+    w_vel: tuple[float, float, float] = (10.0, 10.0, 10.0)  # diag Q_v
+    w_att: tuple[float, float, float] = (50.0, 50.0, 5.0)  # diag Q_q on vec(q_ref⁻¹⊗q)
+    w_input: tuple[float, float, float, float] = (0.1, 0.1, 0.1, 0.1)  # diag R on (c, ω)
+    # Multiplies Q_p, Q_v, Q_q (the state-vs-input trade-off).  4 is the choice of the spec's
+    # {¼, 1, 4} × N ∈ {10, 20, 40} grid on the validation tracks (experiments/tune_nmpc.py).
+    weight_scale: float = 4.0
+    sqp_iters_first: int = 30  # Gauss-Newton iterations of the first solve
+    sqp_iters: int = 1  # iterations of every later solve (1 = RTI)
+    fista_iters: int = 100  # projected-gradient iterations of the box QP
+    power_iters: int = 20  # power iterations for the Lipschitz constant
+    solve_every: int = 1  # control steps between re-solves
+    line_search: bool = True  # α ∈ {1, ½, ¼, ⅛} on the true cost
+    node_substeps: int = 1  # RK4 steps per node interval
+    regularization: float = 1e-6  # added to the diagonal of H
+
+    def __post_init__(self):
+        def integer(name, lo, hi):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"NMPCConfig.{name} must be an integer in [{lo}, {hi}], got {v!r}")
+
+        def number(name, lo, hi, lo_open=True):
+            v = getattr(self, name)
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            ok = ok and (v > lo if lo_open else v >= lo) and v <= hi
+            if not ok:
+                br = "(" if lo_open else "["
+                raise ValueError(f"NMPCConfig.{name} must be a number in {br}{lo}, {hi}], got {v!r}")
+
+        def weights(name, n, positive):
+            v = getattr(self, name)
+            ok = isinstance(v, (tuple, list)) and len(v) == n
+            ok = ok and all(
+                isinstance(x, (int, float)) and math.isfinite(x) and (x > 0 if positive else x >= 0)
+                for x in v
+            )
+            if not ok:
+                rng = "> 0" if positive else ">= 0"
+                raise ValueError(f"NMPCConfig.{name} must be {n} finite numbers {rng}, got {v!r}")
+
+        integer("horizon", 1, 500)
+        number("dt_node", 0.0, 1.0)
+        weights("w_pos", 3, positive=True)
+        weights("w_vel", 3, positive=False)
+        weights("w_att", 3, positive=False)
+        weights("w_input", 4, positive=False)
+        number("weight_scale", 0.0, 1e6)
+        integer("sqp_iters_first", 1, 1000)
+        integer("sqp_iters", 1, 1000)
+        integer("fista_iters", 1, 10_000)
+        integer("power_iters", 1, 1000)
+        integer("solve_every", 1, 100_000)
+        integer("node_substeps", 1, 100)
+        number("regularization", 0.0, 1.0)
+        if not isinstance(self.line_search, bool):
+            raise ValueError(f"NMPCConfig.line_search must be True or False, got {self.line_search!r}")
+
+
+class References(NamedTuple):
+    """Per-node references: states at nodes 1..N, inputs at nodes 0..N-1."""
+
+    pos: jax.Array  # (N, 3) m
+    vel: jax.Array  # (N, 3) m/s
+    quat: jax.Array  # (N, 4) flatness attitude, scalar first
+    u: jax.Array  # (N, 4) physical input reference [thrust, 0, 0, 0]
+
+
+@struct.dataclass
+class NMPCCarry:
+    """Controller memory between control steps."""
+
+    plan: jax.Array  # (N, 4) physical inputs from the last solve
+    age: jax.Array  # int32, control steps since the plan was computed
+    solves: jax.Array  # int32, number of solves so far
+    cost: jax.Array  # cost J of the plan at its solve (diagnostic)
+
+
+def tilt_quaternion(z: jax.Array) -> jax.Array:
+    """Minimal rotation (scalar first, q_z = 0) taking world z onto the unit vector ``z`` (..., 3)."""
+    q = jnp.stack([1.0 + z[..., 2], -z[..., 1], z[..., 0], jnp.zeros_like(z[..., 0])], -1)
+    return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+
+
+class NMPC:
+    """The optimal-control problem and its solver for one environment configuration.
+
+    Every method is a pure function of arrays (jit/vmap them freely).
+    """
+
+    def __init__(self, env_config, cfg: NMPCConfig | None = None):
+        self.env_config = env_config
+        self.cfg = cfg = cfg or NMPCConfig()
+        self.params: QuadParams = env_config.quad
+        self.dt = env_config.dt
+        # physics step offsets of the nodes 0..N (reference sampling)
+        self.node_steps = tuple(int(round(i * cfg.dt_node / self.dt)) for i in range(cfg.horizon + 1))
+        p = self.params
+        self._newton = p.thrust_units == "newton"
+        self._lb = (p.thrust_min, p.rate_min, p.rate_min, p.rate_min)
+        self._ub = (p.thrust_max, p.rate_max, p.rate_max, p.rate_max)
+        s = cfg.weight_scale
+        self._sqrt_q = tuple(math.sqrt(s * w) for w in (*cfg.w_pos, *cfg.w_vel, *cfg.w_att))
+        # R on the physical input: thrust weight rescaled so that it acts on c = f/m
+        m2 = p.mass**2 if self._newton else 1.0
+        self._r = (cfg.w_input[0] / m2, *cfg.w_input[1:])
+
+    # ----------------------------------------------------------------- problem data
+    def bounds(self, dtype) -> tuple[jax.Array, jax.Array]:
+        n = self.cfg.horizon
+        lb = jnp.broadcast_to(jnp.asarray(self._lb, dtype), (n, 4))
+        ub = jnp.broadcast_to(jnp.asarray(self._ub, dtype), (n, 4))
+        return lb, ub
+
+    def references(self, track: tr.Track, k: jax.Array) -> References:
+        """References for a solve at physics step ``k`` (int)."""
+        ks = k + jnp.asarray(self.node_steps, jnp.int32)
+        pos, vel, acc = tr.evaluate(track, ks, self.dt)  # (N+1, 3)
+        f = pos.dtype
+        thrust_acc = acc + jnp.asarray([0.0, 0.0, self.params.gravity], f)
+        c = jnp.linalg.norm(thrust_acc, axis=-1)
+        quat = tilt_quaternion(thrust_acc / c[:, None])
+        thrust = c * self.params.mass if self._newton else c
+        u = jnp.concatenate([thrust[:, None], jnp.zeros((thrust.shape[0], 3), f)], -1)
+        lb, ub = self.bounds(f)
+        u = jnp.clip(u[:-1], lb, ub)
+        return References(pos=pos[1:], vel=vel[1:], quat=quat[1:], u=u)
+
+    # ----------------------------------------------------------------- model and cost
+    def rollout(self, x0: QuadState, U: jax.Array) -> QuadState:
+        """States at nodes 1..N (each leaf with a leading axis N) under the ZOH plan ``U``."""
+        cfg, params = self.cfg, self.params
+
+        def step(x, u):
+            x = rk4_step(params, x, u, cfg.dt_node, substeps=cfg.node_substeps)
+            return x, x
+
+        _, xs = jax.lax.scan(
+            step,
+            x0,
+            U,
+        )
+        return xs
+
+    def state_residual(self, x0: QuadState, ref: References, U: jax.Array) -> jax.Array:
+        """Weighted state residual (9N,): √Q_p e_p, √Q_v e_v, √Q_q vec(q_ref⁻¹⊗q) per node."""
+        xs = self.rollout(x0, U)
+        dq = quat_mul(quat_conj(ref.quat), xs.q)
+        dq_vec = jnp.where(dq[:, :1] < 0, -dq[:, 1:], dq[:, 1:])
+        e = jnp.concatenate([xs.p - ref.pos, xs.v - ref.vel, dq_vec], -1)  # (N, 9)
+        return (e * jnp.asarray(self._sqrt_q, e.dtype)).reshape(-1)
+
+    def cost(self, x0: QuadState, ref: References, U: jax.Array) -> jax.Array:
+        """True cost J(U) (see the module docstring)."""
+        r = self.state_residual(x0, ref, U)
+        du = U - ref.u
+        return 0.5 * (jnp.sum(r * r) + jnp.sum(jnp.asarray(self._r, U.dtype) * du * du))
+
+    # ----------------------------------------------------------------- solver
+    def _box_qp(self, H, g, lo, hi):
+        """FISTA on min ½ΔᵀHΔ + gᵀΔ, lo ≤ Δ ≤ hi (Jacobi-scaled); returns Δ."""
+        cfg = self.cfg
+        d = jax.lax.rsqrt(jnp.diag(H))
+        Hs = H * d[:, None] * d[None, :]
+        gs, ls, hs = g * d, lo / d, hi / d
+
+        def power(_, v):
+            w = Hs @ v
+            return w / jnp.linalg.norm(w)
+
+        v = jax.lax.fori_loop(0, cfg.power_iters, power, jnp.ones_like(g) / math.sqrt(g.shape[0]))
+        L = 1.1 * jnp.dot(v, Hs @ v)
+
+        def fista(_, c):
+            z, y, t = c
+            z_new = jnp.clip(y - (Hs @ y + gs) / L, ls, hs)
+            t_new = 0.5 * (1.0 + jnp.sqrt(1.0 + 4.0 * t * t))
+            y_new = z_new + ((t - 1.0) / t_new) * (z_new - z)
+            return z_new, y_new, t_new
+
+        z0 = jnp.zeros_like(g)  # feasible: U itself is inside the box
+        one = jnp.ones((), g.dtype)
+        z, _, _ = jax.lax.fori_loop(0, cfg.fista_iters, fista, (z0, z0, one))
+        return z * d
+
+    def gn_step(self, x0: QuadState, ref: References, U: jax.Array, cost_u: jax.Array | None = None):
+        """One Gauss-Newton SQP iteration. Returns ``(U_new, J(U_new))``."""
+        cfg = self.cfg
+        if cost_u is None:
+            cost_u = self.cost(x0, ref, U)
+        res = lambda u: self.state_residual(x0, ref, u.reshape(U.shape))
+        u_flat = U.reshape(-1)
+        r = res(u_flat)
+        J = jax.jacfwd(res)(u_flat)  # (9N, 4N)
+        rw = jnp.tile(jnp.asarray(self._r, U.dtype), cfg.horizon)
+        H = J.T @ J + jnp.diag(rw + cfg.regularization)
+        g = J.T @ r + rw * (u_flat - ref.u.reshape(-1))
+        lb, ub = self.bounds(U.dtype)
+        delta = self._box_qp(H, g, lb.reshape(-1) - u_flat, ub.reshape(-1) - u_flat).reshape(U.shape)
+        if not cfg.line_search:
+            U_new = jnp.clip(U + delta, lb, ub)
+            return U_new, self.cost(x0, ref, U_new)
+        alphas = jnp.asarray(LINE_SEARCH_ALPHAS, U.dtype)
+        cands = jnp.clip(U[None] + alphas[:, None, None] * delta[None], lb, ub)
+        costs = jax.vmap(lambda u: self.cost(x0, ref, u))(cands)
+        ok = jnp.isfinite(costs) & (costs < cost_u)
+        i = jnp.argmax(ok)  # first α that decreases the cost
+        accept = ok[i]
+        return jnp.where(accept, cands[i], U), jnp.where(accept, costs[i], cost_u)
+
+    def solve(self, x0: QuadState, ref: References, U: jax.Array, iters) -> tuple[jax.Array, jax.Array]:
+        """``iters`` (may be traced) Gauss-Newton iterations from ``U``; returns (U, J(U))."""
+        lb, ub = self.bounds(U.dtype)
+        U = jnp.clip(U, lb, ub)
+        c0 = self.cost(x0, ref, U)
+        return jax.lax.fori_loop(0, iters, lambda _, c: self.gn_step(x0, ref, *c), (U, c0))
+
+    def shift(self, U: jax.Array, seconds) -> jax.Array:
+        """Warm start: the plan advanced by ``seconds`` (linear interpolation between
+        nodes, last node held)."""
+        n = self.cfg.horizon
+        s = jnp.asarray(seconds, U.dtype) / self.cfg.dt_node + jnp.arange(n, dtype=U.dtype)
+        s = jnp.clip(s, 0.0, n - 1.0)
+        i0 = jnp.floor(s).astype(jnp.int32)
+        i1 = jnp.minimum(i0 + 1, n - 1)
+        f = (s - i0.astype(U.dtype))[:, None]
+        return (1.0 - f) * U[i0] + f * U[i1]
+
+    def plan_input(self, U: jax.Array, seconds) -> jax.Array:
+        """Input of the ZOH plan ``U`` at ``seconds`` after its start."""
+        i = jnp.floor(jnp.asarray(seconds, U.dtype) / self.cfg.dt_node + 1e-6).astype(jnp.int32)
+        return U[jnp.clip(i, 0, self.cfg.horizon - 1)]
+
+
+def nmpc_controller(env_config, cfg: NMPCConfig | None = None):
+    """NMPC as an :class:`ttd3_jax.evaluate.Controller` for ``env_config`` (its model,
+    bounds, action map, ``dt`` and ``action_repeat``)."""
+    from ttd3_jax.env import control_to_action
+    from ttd3_jax.evaluate import Controller
+
+    mpc = NMPC(env_config, cfg)
+    cfg = mpc.cfg
+    control_dt = env_config.control_dt
+
+    def init(state) -> NMPCCarry:
+        ps = state.pipeline_state
+        ref = mpc.references(ps.track, ps.k)
+        zero = jnp.zeros((), jnp.int32)
+        return NMPCCarry(plan=ref.u, age=zero, solves=zero, cost=jnp.zeros((), ref.u.dtype))
+
+    def act(carry: NMPCCarry, state):
+        ps = state.pipeline_state
+
+        def resolve(c: NMPCCarry) -> NMPCCarry:
+            ref = mpc.references(ps.track, ps.k)
+            warm = mpc.shift(c.plan, c.age.astype(c.plan.dtype) * control_dt)
+            iters = jnp.where(c.solves == 0, cfg.sqp_iters_first, cfg.sqp_iters)
+            U, J = mpc.solve(ps.quad, ref, warm, iters)
+            return NMPCCarry(plan=U, age=jnp.zeros_like(c.age), solves=c.solves + 1, cost=J)
+
+        due = (carry.solves == 0) | (carry.age >= cfg.solve_every)
+        carry = jax.lax.cond(due, resolve, lambda c: c, carry)
+        u = mpc.plan_input(carry.plan, carry.age.astype(carry.plan.dtype) * control_dt)
+        a = control_to_action(env_config, u).astype(state.obs.dtype)
+        return a, carry.replace(age=carry.age + 1)
+
+    return Controller(init=init, act=act)
