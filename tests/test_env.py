@@ -257,12 +257,14 @@ def test_wind_and_observation_noise_are_seeded():
 
 def test_practical_preset_repeats_actions():
     cfg = make_config("practical")
-    assert cfg.action_repeat == 10 and cfg.lookahead_k == 50 and cfg.crash_penalty == pytest.approx(4000)
+    assert cfg.action_repeat == 10 and cfg.lookahead_k == 50 and cfg.obs_frame == "track"
+    assert cfg.e_max == 1.0 and cfg.crash_penalty == pytest.approx(1000)  # r_e(1)·10/(1-0.99)
+    assert make_config("practical", e_max=2.0).crash_penalty == pytest.approx(4000)
     env = TrackingEnv(cfg.for_eval("spiral_rt"))
     assert env.episode_length == 300 and env.dt == pytest.approx(0.01)
     s = env.step(env.reset(jax.random.PRNGKey(0)), hover_action(cfg))
     assert int(s.pipeline_state.k) == 10
-    np.testing.assert_allclose(s.obs[10:13], spiral_np(60), atol=1e-6)
+    np.testing.assert_allclose(s.obs[10:13], spiral_np(60) - spiral_np(10), atol=1e-6)  # track frame
     assert float(s.metrics["energy"]) == pytest.approx(10 * 0.4715, rel=1e-4)
 
 

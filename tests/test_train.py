@@ -362,3 +362,36 @@ def test_normalised_run_stores_stats_and_evaluates():
     assert float(ts.obs_stats.count) == n0 + c.steps_per_epoch * c.num_envs
     ev = jax.jit(tr.evaluate)(ts)
     assert np.isfinite(float(ev["spiral_tracking_error"]))
+
+
+# --------------------------------------------------------------------------- learning
+
+
+def test_fast_preset_learns_on_a_small_budget(tmp_path):
+    """A real improvement over the untrained policy on the fixed test tracks (one seed,
+    about a minute on 2 CPU cores).  Untrained Σ||e|| is in the 1e4 range (the policy
+    drifts away); the bar is a 10x reduction on both tracks (measured: 86x and 34x)."""
+    c = preset("fast", total_transitions=160_000, buffer_size=160_000, epochs=4)
+    t = make_trainer(c)
+    ts0 = jax.jit(t.init)(seed_keys(c)[0], c.hp)
+    before = jax.device_get(jax.jit(t.evaluate)(ts0))
+    summary = run(c, out=str(tmp_path), verbose=False)
+    after = summary["final_eval"][0]
+    for track in ("spiral", "los"):
+        b, a = float(before[f"{track}_tracking_error"]), after[f"{track}_tracking_error"]
+        print(f"{track}: untrained {b:.0f}, trained {a:.0f}")
+        assert a < b / 10, (track, b, a)
+
+
+def test_run_refuses_to_load_when_the_env_config_changed(tmp_path):
+    run(tiny(), out=str(tmp_path), verbose=False, stop_after=0)
+    (run_dir,) = [p for p in tmp_path.iterdir() if p.is_dir()]
+    from ttd3_jax.runner import load_config
+
+    load_config(str(run_dir))  # unchanged: fine
+    path = run_dir / "env_config.json"
+    saved = json.loads(path.read_text())
+    saved["e_max"] = 2.0
+    path.write_text(json.dumps(saved))
+    with pytest.raises(ValueError, match="e_max"):
+        load_config(str(run_dir))

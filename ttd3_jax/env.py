@@ -96,6 +96,11 @@ class EnvConfig:
     obs_noise_pos: float = 0.0  # m, std
     obs_noise_vel: float = 0.0  # m/s, std
     obs_noise_quat: float = 0.0  # std on each quaternion component (then renormalised)
+    # robustness evaluation (not in the paper)
+    action_delay: int = 0  # control steps between an action and its application (0 or 1)
+    thrust_map_mass: float | None = None  # kg: mass whose hover thrust the action map assumes
+    #   under hover_centered_thrust (None = quad.mass); set to the nominal mass when quad.mass
+    #   is changed, so that a mass error stays unknown to the action map (and the controller)
 
     def __post_init__(self):
         def positive(name, integer=False):
@@ -133,6 +138,12 @@ class EnvConfig:
             "los_seed",
         ):
             non_negative(name)
+        if isinstance(self.action_delay, bool) or self.action_delay not in (0, 1):
+            raise ValueError(
+                f"EnvConfig.action_delay must be 0 or 1 (control steps), got {self.action_delay!r}"
+            )
+        if self.thrust_map_mass is not None:
+            positive("thrust_map_mass")
         one_of("err_ref", ERR_REFS)
         one_of("err_cost", ERR_COSTS)
         one_of("obs_frame", OBS_FRAMES)
@@ -194,14 +205,16 @@ def make_config(preset: str = "paper", **overrides) -> EnvConfig:
 
     ``paper``: 1 kHz control exactly as published (spec defaults), trained with an OU
     wind of 0.2 m/s^2.  ``practical``: 10 physics steps per action and a 50 ms
-    look-ahead so that γ = 0.99 spans about 1 s (spec T9).
+    look-ahead so that γ = 0.99 spans about 1 s (spec T9); positions observed
+    relative to the current reference point (``obs_frame="track"``); episodes end
+    1 m off the track, with the R4 penalty for that distance (1000).
     """
     if preset == "paper":
         base = dict(wind_sigma=0.2)
     elif preset == "practical":
         repeat, gamma = 10, 0.99
-        base = dict(wind_sigma=0.2, action_repeat=repeat, lookahead_k=50)
-        rho1, e_max = overrides.get("rho1", 1.0), overrides.get("e_max", 2.0)
+        base = dict(wind_sigma=0.2, action_repeat=repeat, lookahead_k=50, obs_frame="track", e_max=1.0)
+        rho1, e_max = overrides.get("rho1", 1.0), overrides.get("e_max", base["e_max"])
         e_cost = e_max if e_max * e_max <= 1 else e_max * e_max
         base["crash_penalty"] = rho1 * e_cost * repeat / (1 - gamma)
     else:
@@ -215,7 +228,10 @@ def make_config(preset: str = "paper", **overrides) -> EnvConfig:
 
 def _thrust_range(cfg: EnvConfig):
     q = cfg.quad
-    return q.thrust_min, q.thrust_max, q.hover_thrust
+    hover = q.hover_thrust
+    if cfg.thrust_map_mass is not None and q.thrust_units == "newton":
+        hover = q.gravity * cfg.thrust_map_mass
+    return q.thrust_min, q.thrust_max, hover
 
 
 def action_to_control(cfg: EnvConfig, a: jax.Array) -> jax.Array:
@@ -249,8 +265,9 @@ def control_to_action(cfg: EnvConfig, u: jax.Array) -> jax.Array:
 
 
 def hover_action(cfg: EnvConfig) -> jax.Array:
-    """Normalised action that holds hover (a0 = 0.4715 with the paper's numbers)."""
-    u = jnp.array([cfg.quad.hover_thrust, 0.0, 0.0, 0.0])
+    """Normalised action that holds hover (a0 = 0.4715 with the paper's numbers).  With
+    ``thrust_map_mass`` set: the hover action of that (nominal) mass."""
+    u = jnp.array([_thrust_range(cfg)[2], 0.0, 0.0, 0.0])
     return control_to_action(cfg, u)
 
 
@@ -267,6 +284,14 @@ class TrackingState:
     wind: jax.Array  # (3,) m/s^2, OU acceleration disturbance
     key: jax.Array  # PRNG key for wind and observation noise
     ref_next: jax.Array  # (3,) m, p_d(k+1), cached by ``observe`` for the next reward
+
+
+@struct.dataclass
+class DelayedTrackingState(TrackingState):
+    """The state of an env with ``action_delay = 1``.  A subclass, so that undelayed envs
+    (and the checkpoints of their training runs) keep the layout of :class:`TrackingState`."""
+
+    prev_action: jax.Array  # (4,) action the next step applies (the hover action at reset)
 
 
 class TrackingEnv(Env):
@@ -344,14 +369,12 @@ class TrackingEnv(Env):
         wind = jnp.zeros(3, f)
         if c.wind_sigma > 0:
             wind = c.wind_sigma * jax.random.normal(k_wind, (3,), f)
-        ps = TrackingState(
-            quad=quad,
-            k=jnp.zeros((), jnp.int32),
-            track=track,
-            wind=wind,
-            key=k_next,
-            ref_next=jnp.zeros(3, f),
-        )
+        fields = dict(quad=quad, k=jnp.zeros((), jnp.int32), track=track, wind=wind, key=k_next)
+        fields["ref_next"] = jnp.zeros(3, f)
+        if c.action_delay:
+            ps = DelayedTrackingState(**fields, prev_action=hover_action(c).astype(f))
+        else:
+            ps = TrackingState(**fields)
         obs, ps = self.observe(ps)
         zero = jnp.zeros((), f)
         metrics = {"tracking_error": zero, "energy": zero, "energy_sq": zero, "crashed": zero}
@@ -359,10 +382,13 @@ class TrackingEnv(Env):
         return State(pipeline_state=ps, obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
 
     def step(self, state: State, action: jax.Array) -> State:
-        """Apply ``action`` (4,) in [-1, 1] for ``action_repeat`` physics steps."""
+        """Apply ``action`` (4,) in [-1, 1] for ``action_repeat`` physics steps (with
+        ``action_delay = 1``: apply the previous step's action and keep this one)."""
         c = self.config
         ps = state.pipeline_state
         a = jnp.clip(action, -1.0, 1.0).astype(ps.quad.p.dtype)
+        if c.action_delay:
+            a, ps = ps.prev_action, ps.replace(prev_action=a)
         u = action_to_control(c, a)
         effort = self._effort(a)
         zero = jnp.zeros((), ps.quad.p.dtype)

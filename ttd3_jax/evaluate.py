@@ -4,27 +4,49 @@ A controller is a pair of pure functions ``init(env_state) -> carry`` and
 ``act(carry, env_state) -> (action, carry)`` returning a normalised action (4,).
 :func:`closed_loop` runs it for a whole episode as one ``lax.scan``.
 
+:class:`Evaluator` compiles the evaluation programs of a controller family once
+(parameters such as a policy's weights are arguments, so the seeds of a run share
+them): batched metrics over many tracks, and the run-time figures (Python loop over a
+jitted step as the paper timed it, one compiled scan, per-call latency).
+:func:`evaluate_robustness` repeats the evaluation under wind, an unknown mass error,
+observation noise and one step of actuation delay.
+
 CLI::
 
     python -m ttd3_jax.evaluate --controller geometric        # Spiral-RT and LOS-RT seed 0
     python -m ttd3_jax.evaluate --controller nmpc --nmpc-solve-every 10
+    python -m ttd3_jax.evaluate RUN_DIR [--epoch E] [--seed-index I] [--robustness]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import json
+import math
+import os
 import sys
 import time
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from ttd3_jax import trajectories as tr
-from ttd3_jax.env import PRESETS, EnvConfig, TrackingEnv, control_to_action, hover_action, make_config
+from ttd3_jax.dynamics import QuadState
+from ttd3_jax.env import (
+    PRESETS,
+    EnvConfig,
+    TrackingEnv,
+    action_to_control,
+    control_to_action,
+    hover_action,
+    make_config,
+)
 from ttd3_jax.geometric import GeometricGains, geometric_control
 
 CONTROLLERS = ("geometric", "hover", "nmpc")
@@ -72,12 +94,14 @@ def closed_loop(env: TrackingEnv, controller: Controller, state) -> Rollout:
     def body(carry, _):
         s, ctrl = carry
         a, ctrl = controller.act(ctrl, s)
+        # the action the env applies now: the previous one under ``action_delay = 1``
+        applied = s.pipeline_state.prev_action if c.action_delay else jnp.clip(a, -1.0, 1.0)
         s = env.step(s, a)
         ps = s.pipeline_state
         out = (
             ps.quad.p,
             tr.position(ps.track, ps.k, c.dt),
-            jnp.clip(a, -1.0, 1.0),
+            applied,
             s.metrics["tracking_error"],
             s.metrics["crashed"],
         )
@@ -103,6 +127,23 @@ def metrics(env: TrackingEnv, r: Rollout) -> dict[str, jax.Array]:
         "energy": rep * jnp.sum(jnp.sqrt(a2)),
         "energy_sq": rep * jnp.sum(a2),
     }
+
+
+def energy_paper_map(actions, cfg: EnvConfig) -> np.ndarray:
+    """Σ‖a‖ over the physics steps (spec §2.5) of applied actions ``actions`` (..., T, 4)
+    of an env with config ``cfg``, re-expressed in the paper's action map (O2: thrust
+    f_min + (a0+1)/2·(f_max − f_min), no hover centring).  The physical commands are the
+    same, so controllers trained or built with different maps become comparable (under
+    ``hover_centered_thrust`` hover is a0 = 0, in the paper's map a0 = 0.4715)."""
+    a = to_paper_map(actions, cfg)
+    return cfg.action_repeat * np.sum(np.linalg.norm(a, axis=-1), axis=-1)
+
+
+def to_paper_map(actions, cfg: EnvConfig) -> np.ndarray:
+    """Normalised actions (..., 4) of an env with config ``cfg`` in the paper's action map
+    (the same physical commands; see :func:`energy_paper_map`)."""
+    paper = dataclasses.replace(cfg, hover_centered_thrust=False, thrust_map_mass=None)
+    return np.asarray(control_to_action(paper, action_to_control(cfg, jnp.asarray(actions))))
 
 
 def test_tracks(env: TrackingEnv, los_seeds=(0,)) -> tr.Track:
@@ -165,16 +206,561 @@ def evaluate_track(cfg: EnvConfig, controller_name: str, track: str, los_seed: i
     return {k: float(v) for k, v in out.items()}, t_compile, t_run
 
 
+# --------------------------------------------------------------------------- paper values
+
+# The paper's Tables 3-5 (quadrotor; "MPC" is the paper's own, unspecified MPC).  Σ‖e‖ in m,
+# energy Σ√(uᵀu) (spec M2: the LOS values exceed the bound of 2 per step), run time in s
+# (Python loop of 3000 controller outputs, mean of 3 runs, hardware not stated).
+PAPER = {
+    "T-TD3": {
+        "spiral_rt": {"tracking_error": 25.99, "energy": 2759.582772, "run_s": 4.879404},
+        "los_rt": {"tracking_error": 398.74, "energy": 7156.452883, "run_s": 4.754059},
+    },
+    "MPC": {
+        "spiral_rt": {"tracking_error": 78.47, "energy": 2762.378835, "run_s": 19.360494},
+        "los_rt": {"tracking_error": 542.92, "energy": 7467.541158, "run_s": 16.305317},
+    },
+}
+
+TRACK_TITLES = {"spiral_rt": "Spiral-RT", "los_rt": "LOS-RT"}
+
+
+def device_description() -> str:
+    """The default JAX device in words, e.g. ``"cpu (cpu), 1 core(s) usable"``."""
+    dev = jax.devices()[0]
+    text = f"{dev.platform} ({dev.device_kind})"
+    if dev.platform == "cpu":
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:  # not on Linux
+            cores = os.cpu_count()
+        model = ""
+        with contextlib.suppress(OSError):
+            with open("/proc/cpuinfo") as fh:
+                model = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), "")
+        text += f", {model + ', ' if model else ''}{cores} core(s) usable"
+    return text
+
+
+# --------------------------------------------------------------------------- compiled evaluation
+
+Build = Callable[[Any], Controller]  # parameters theta (a pytree, or None) -> Controller
+
+
+def fixed(controller: Controller) -> Build:
+    """A :data:`Build` for a controller without parameters (use ``theta=None``)."""
+    return lambda theta: controller
+
+
+def sensed_controller(controller: Controller, cfg: EnvConfig) -> Controller:
+    """``controller`` fed with the vehicle state as the env observes it (p, v, q, and ω when
+    observed, read from ``obs``) instead of the true state, so that observation noise
+    reaches classical controllers as it reaches a policy.  Without noise the two agree
+    (q and −q are the same attitude; track-frame positions are shifted back)."""
+
+    def sensed(s):
+        ps, o = s.pipeline_state, s.obs
+        p = o[0:3]
+        if cfg.obs_frame == "track":
+            p = p + tr.position(ps.track, ps.k, cfg.dt).astype(p.dtype)
+        w = o[17:20] if cfg.quad.rate_model != "instant" else ps.quad.w
+        quad = QuadState(p=p, v=o[3:6], q=o[6:10], w=w)
+        return s.replace(pipeline_state=ps.replace(quad=quad))
+
+    return Controller(
+        init=lambda s: controller.init(sensed(s)), act=lambda c, s: controller.act(c, sensed(s))
+    )
+
+
+def controller_build(name: str, cfg: EnvConfig, sensed: bool = True, **options) -> Build:
+    """:func:`make_controller` for ``cfg`` as a :data:`Build`; ``sensed`` (default) feeds it
+    the observed state (:func:`sensed_controller`)."""
+    ctrl = make_controller(name, cfg, **options)
+    return fixed(sensed_controller(ctrl, cfg) if sensed else ctrl)
+
+
+@dataclasses.dataclass
+class Trace:
+    """One episode on the host, for plots: per control step i, at t = (i+1)·control_dt."""
+
+    t: np.ndarray  # (T,) s
+    pos: np.ndarray  # (T, 3) m
+    ref: np.ndarray  # (T, 3) m
+    action: np.ndarray  # (T, 4) applied normalised action
+    error: np.ndarray  # (T,) m, ||p_d - p||
+
+    @classmethod
+    def from_rollout(cls, r: Rollout, control_dt: float) -> Trace:
+        pos, ref = np.asarray(r.pos), np.asarray(r.ref)
+        t = control_dt * np.arange(1, pos.shape[0] + 1)
+        return cls(
+            t=t, pos=pos, ref=ref, action=np.asarray(r.action), error=np.linalg.norm(pos - ref, axis=-1)
+        )
+
+
+def _index(tree, i):
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+def _signature(name, args):
+    leaves, treedef = jax.tree.flatten(args)
+    return name, treedef, tuple((jnp.shape(x), str(jnp.result_type(x))) for x in leaves)
+
+
+class Evaluator:
+    """Compiled programs that evaluate one controller family on one env.
+
+    ``build(theta)`` returns the controller for parameters ``theta`` (a policy's weights, or
+    ``None`` for a fixed controller).  ``theta`` is an argument of every program, so the
+    seeds of a training run share one compilation.  ``compile_s`` holds the compile time of
+    each program (its first compilation).  ``sequential=True`` runs a batch of tracks one
+    after the other (``lax.map``) instead of ``vmap``: use it for controllers whose
+    ``lax.cond`` must stay a branch (NMPC with ``solve_every > 1``; under ``vmap`` both
+    sides of a ``cond`` run at every step).
+    """
+
+    def __init__(self, env: TrackingEnv, build: Build, sequential: bool = False):
+        self.env, self.build, self.sequential = env, build, sequential
+        self.compile_s: dict[str, float] = {}
+        self._programs: dict = {}
+
+    def _program(self, name: str, fn: Callable, *args):
+        key = _signature(name, args)
+        if key not in self._programs:
+            t0 = time.perf_counter()
+            self._programs[key] = jax.jit(fn).lower(*args).compile()
+            self.compile_s.setdefault(name, time.perf_counter() - t0)
+        return self._programs[key]
+
+    def _episode(self, theta, track, key):
+        env = self.env
+        r = closed_loop(env, self.build(theta), env.reset_with_track(key, track))
+        return r, metrics(env, r)
+
+    def rollouts(self, theta, tracks: tr.Track, keys: jax.Array | None = None):
+        """``(Rollout, metrics)`` on the host, one episode per track (leading axis).  ``keys``
+        (one per track) seed wind and observation noise; default ``PRNGKey(0)`` for all,
+        as :func:`evaluate_on_tracks`."""
+        n = tracks.kind.shape[0]
+        if keys is None:
+            keys = jnp.stack([jax.random.PRNGKey(0)] * n)
+
+        def batch(theta, tracks, keys):
+            if self.sequential:
+                return jax.lax.map(lambda tk: self._episode(theta, *tk), (tracks, keys))
+            return jax.vmap(self._episode, in_axes=(None, 0, 0))(theta, tracks, keys)
+
+        out = self._program("rollouts", batch, theta, tracks, keys)(theta, tracks, keys)
+        return jax.device_get(out)
+
+    def timing(self, theta, track: tr.Track, repeats: int = 3, warmup_steps: int = 10) -> dict:
+        """Run time of one episode on ``track`` (spec §2.5), measured after compilation:
+
+        * ``loop_s``: the episode driven step by step from Python, one call of a jitted
+          (controller + env step) function per control step, waiting for each action
+          (as the paper timed its controllers), mean of ``repeats`` runs;
+        * ``scan_s``: the same episode as one compiled ``lax.scan``, mean of ``repeats``;
+        * ``act_ms``: per-call latency of the jitted controller ``act`` alone, mean over
+          the episode's control steps (the env is stepped by a separate program);
+        * ``compile_*_s``: compile times of those programs (first compilation).
+        """
+        env, build = self.env, self.build
+        key = jax.random.PRNGKey(0)
+        n = env.episode_length
+
+        def start(theta, track):
+            s = env.reset_with_track(key, track)
+            return s, build(theta).init(s)
+
+        def step(theta, s, c):
+            a, c = build(theta).act(c, s)
+            return env.step(s, a), c, a
+
+        def scan(theta, track):
+            return self._episode(theta, track, key)[1]["tracking_error"]
+
+        def act(theta, c, s):
+            return build(theta).act(c, s)
+
+        s0, c0 = self._program("start", start, theta, track)(theta, track)
+        step_c = self._program("loop_step", step, theta, s0, c0)
+        scan_c = self._program("scan", scan, theta, track)
+        act_c = self._program("act", act, theta, c0, s0)
+        env_c = self._program("env_step", env.step, s0, jnp.zeros(4, s0.obs.dtype))
+
+        def loop(steps):
+            s, c = s0, c0
+            for _ in range(steps):
+                s, c, a = step_c(theta, s, c)
+                a.block_until_ready()
+            return s
+
+        def timed(fn):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            return time.perf_counter() - t0
+
+        loop(warmup_steps)
+        loop_runs = [timed(lambda: loop(n)) for _ in range(repeats)]
+        scan_runs = [timed(lambda: scan_c(theta, track)) for _ in range(repeats)]
+        s, c, lat = s0, c0, []
+        for _ in range(n):
+            t0 = time.perf_counter()
+            a, c = act_c(theta, c, s)
+            a.block_until_ready()
+            lat.append(time.perf_counter() - t0)
+            s = env_c(s, a)
+        cs = self.compile_s
+        return {
+            "control_steps": n,
+            "loop_s": float(np.mean(loop_runs)),
+            "loop_runs_s": loop_runs,
+            "scan_s": float(np.mean(scan_runs)),
+            "scan_runs_s": scan_runs,
+            "act_ms": 1e3 * float(np.mean(lat)),
+            "act_max_ms": 1e3 * float(np.max(lat)),
+            "compile_scan_s": cs["scan"],
+            "compile_loop_step_s": cs["loop_step"],
+            "compile_act_s": cs["act"],
+        }
+
+
+def evaluate_controller(
+    ev: Evaluator,
+    theta=None,
+    los_seed: int = 0,
+    tracks=tr.TEST_TRACKS,
+    timing: bool = True,
+    repeats: int = 3,
+) -> tuple[dict, dict]:
+    """Metrics (spec §2.5), optional run times and traces on Spiral-RT and LOS-RT
+    ``los_seed``: ``({track: {metric: float}}, {track: Trace})``."""
+    batch = test_tracks(ev.env, (los_seed,))  # spiral_rt, los_rt
+    r, m = ev.rollouts(theta, batch)
+    results, traces = {}, {}
+    for i, name in enumerate(tr.TEST_TRACKS):
+        if name not in tracks:
+            continue
+        res = {k: float(v[i]) for k, v in m.items()}
+        if timing:
+            res.update(ev.timing(theta, _index(batch, i), repeats))
+        results[name] = res
+        traces[name] = Trace.from_rollout(_index(r, i), ev.env.config.control_dt)
+    return results, traces
+
+
+SUMMARY_METRICS = ("tracking_error", "rmse", "max_error", "energy", "energy_sq")
+
+
+def summarize(m: dict, los_seeds) -> dict:
+    """Metrics of a :func:`test_tracks` batch (Spiral-RT first, then the LOS seeds) as
+    ``{"spiral_rt": {metric: value}, "los_rt": {metric: {"mean", "std"}, "crashed": count,
+    "seeds": [...]}}``.  A non-finite Σ‖e‖ (a state that blew up) makes mean and std inf."""
+    m = {k: np.asarray(v) for k, v in m.items()}
+    spiral = {k: float(v[0]) for k, v in m.items()}
+    los = {k: {"mean": float(np.mean(m[k][1:])), "std": float(np.std(m[k][1:]))} for k in SUMMARY_METRICS}
+    los["crashed"] = int(np.sum(m["crashed"][1:] > 0))
+    los["seeds"] = [int(s) for s in los_seeds]
+    return {"spiral_rt": spiral, "los_rt": los}
+
+
+def los_statistics(ev: Evaluator, theta=None, los_seeds=range(1, 21), keys=None) -> dict:
+    """:func:`summarize` of Spiral-RT and the LOS-RT test instances ``los_seeds`` (one
+    compiled batch)."""
+    los_seeds = tuple(los_seeds)
+    _, m = ev.rollouts(theta, test_tracks(ev.env, los_seeds), keys)
+    return summarize(m, los_seeds)
+
+
+# --------------------------------------------------------------------------- robustness
+
+ROBUSTNESS_WIND = 0.5  # m/s^2, OU stationary std (spec O3)
+ROBUSTNESS_MASS = 0.2  # ± fraction of the mass, unknown to the controller
+# observation noise std: position m, velocity m/s, each quaternion component (then renormalised)
+ROBUSTNESS_OBS_NOISE = {"obs_noise_pos": 0.01, "obs_noise_vel": 0.05, "obs_noise_quat": 0.005}
+ROBUSTNESS_DESCRIPTIONS = {
+    "nominal": "nominal evaluation (spec §2.5)",
+    "wind": f"OU acceleration disturbance, σ = {ROBUSTNESS_WIND} m/s², τ = 0.5 s",
+    "mass+20": f"vehicle mass +{ROBUSTNESS_MASS:.0%}, unknown to the controller and the action map",
+    "mass-20": f"vehicle mass -{ROBUSTNESS_MASS:.0%}, unknown to the controller and the action map",
+    "obs_noise": "observation noise (std): position 0.01 m, velocity 0.05 m/s, quaternion 0.005",
+    "delay": "one control step of actuation delay (the env applies the previous action)",
+}
+ROBUSTNESS_CONDITIONS = tuple(ROBUSTNESS_DESCRIPTIONS)
+
+
+def robustness_conditions(cfg: EnvConfig) -> dict[str, EnvConfig]:
+    """Evaluation configs (``los_rt`` mode, all from ``cfg.for_eval``) of each robustness
+    condition.  The mass conditions change ``quad.mass`` and pin ``thrust_map_mass`` to the
+    nominal mass, so that a hover-centred action map does not learn about the change
+    either.  (Under ``thrust_units="mass_normalized"`` the mass has no effect on the model.)
+    One step of delay is one control step: 1 ms with the ``paper`` preset, 10 ms with
+    ``practical``."""
+    nominal = cfg.for_eval("los_rt")
+    m0 = cfg.quad.mass if cfg.thrust_map_mass is None else cfg.thrust_map_mass
+
+    def mass(factor):
+        quad = nominal.quad.replace(mass=cfg.quad.mass * factor)
+        return dataclasses.replace(nominal, quad=quad, thrust_map_mass=m0)
+
+    return {
+        "nominal": nominal,
+        "wind": cfg.for_eval("los_rt", wind_sigma=ROBUSTNESS_WIND),
+        "mass+20": mass(1.0 + ROBUSTNESS_MASS),
+        "mass-20": mass(1.0 - ROBUSTNESS_MASS),
+        "obs_noise": dataclasses.replace(nominal, **ROBUSTNESS_OBS_NOISE),
+        "delay": dataclasses.replace(nominal, action_delay=1),
+    }
+
+
+def evaluate_robustness(
+    build: Build,
+    theta,
+    cfg: EnvConfig,
+    los_seeds=range(1, 21),
+    conditions=ROBUSTNESS_CONDITIONS,
+    sequential: bool = False,
+    seed: int = 0,
+) -> dict:
+    """The controller ``build(theta)`` (built by the caller for the *nominal* ``cfg``) under
+    each robustness condition: ``{condition: summarize(...)}`` over Spiral-RT and the LOS-RT
+    test instances ``los_seeds`` (mean ± std of Σ‖e‖, energy, crash count).  Each track of a
+    condition runs in one compiled batch; wind and noise keys differ per track (fold_in of
+    ``seed``)."""
+    all_conditions = robustness_conditions(cfg)
+    unknown = [c for c in conditions if c not in all_conditions]
+    if unknown:
+        raise ValueError(f"unknown robustness condition(s) {unknown}; allowed: {ROBUSTNESS_CONDITIONS}")
+    los_seeds = tuple(los_seeds)
+    base = jax.random.PRNGKey(seed)
+    keys = jnp.stack([jax.random.fold_in(base, i) for i in range(len(los_seeds) + 1)])
+    out = {}
+    for name in conditions:
+        ev = Evaluator(TrackingEnv(all_conditions[name]), build, sequential=sequential)
+        out[name] = los_statistics(ev, theta, los_seeds, keys)
+    return out
+
+
+# --------------------------------------------------------------------------- trained policies
+
+
+class LoadedRun(NamedTuple):
+    config: Any  # TrainConfig
+    env_config: EnvConfig  # the run's (training) env config
+    epoch: int
+    build: Build  # theta = (actor params, obs stats or None) -> policy Controller
+    thetas: list  # [(seed, theta)] for every seed of the run
+
+
+def load_run(run_dir: str, epoch: int | None = None) -> LoadedRun:
+    """A quadrotor training run's checkpoint ``epoch`` (default: the latest) as policy
+    controllers, one per seed, with the env config the run trained on (the policy must see
+    the observation layout it was trained with)."""
+    from ttd3_jax import checkpoint as ckpt
+    from ttd3_jax.runner import load_config, load_train_state
+    from ttd3_jax.train import QUADROTOR, policy_controller, quad_env_config
+
+    c = load_config(run_dir)
+    if c.env != QUADROTOR:
+        raise ValueError(f"{run_dir!r} is a {c.env!r} run; only quadrotor runs can be evaluated here")
+    if epoch is None:
+        epoch = ckpt.latest_epoch(ckpt.manager(run_dir))
+    c, trainer, state = load_train_state(run_dir, epoch)
+    nets = trainer.nets
+
+    def build(theta):
+        actor, stats = theta
+        return policy_controller(nets, actor, stats)
+
+    thetas = [
+        (c.seed + i, (_index(state.actor, i), _index(state.obs_stats, i) if c.normalize_obs else None))
+        for i in range(c.num_seeds)
+    ]
+    return LoadedRun(c, quad_env_config(c), int(epoch), build, thetas)
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def plot_traces(
+    traces: dict[str, dict[str, Trace]],
+    out_dir: str,
+    title: str = "",
+    los_seed: int = 0,
+    prefix: str = "",
+    e_show: float = 2.0,
+    action_note: str = "",
+) -> list[str]:
+    """Per track: ``{prefix}{track}_3d.png`` (reference and flown paths),
+    ``{prefix}{track}_error.png`` (‖e‖ vs time) and ``{prefix}{track}_actions.png`` (the four
+    applied normalised actions and ‖a‖ vs time).  ``traces`` maps a label (controller, seed)
+    to ``{track: Trace}``.  The 3-D plot shows each flown path until its error first
+    exceeds ``e_show`` m; ``action_note`` is appended to the action plot's title."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    os.makedirs(out_dir, exist_ok=True)
+    tracks = [t for t in tr.TEST_TRACKS if any(t in v for v in traces.values())]
+    paths = []
+    for track in tracks:
+        runs = {label: v[track] for label, v in traces.items() if track in v}
+        name = TRACK_TITLES.get(track, track) + (f" seed {los_seed}" if track == "los_rt" else "")
+        finest = max(runs.values(), key=lambda x: x.t.size)
+        suffix = f" ({title})" if title else ""
+
+        fig = plt.figure(figsize=(7, 6))
+        ax = fig.add_subplot(projection="3d")
+        ax.plot(*finest.ref.T, "k--", lw=1.5, label="reference")
+        for label, x in runs.items():
+            # the flown path until the error first exceeds e_show (a path that flies off would
+            # set the axes' scale for everyone)
+            off = np.flatnonzero(~(x.error <= e_show))
+            n = off[0] if off.size else x.t.size
+            if off.size:
+                label = f"{label} (> {e_show:g} m off at {x.t[n]:.2f} s)"
+            ax.plot(*x.pos[:n].T, lw=1.2, label=label)
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_zlabel("z [m]")
+        ax.set_title(f"{name}: reference vs flown{suffix}")
+        ax.legend(fontsize=8)
+        paths.append(_save(fig, os.path.join(out_dir, f"{prefix}{track}_3d.png")))
+
+        fig, ax = plt.subplots(figsize=(7, 3.5))
+        for label, x in runs.items():
+            ax.plot(x.t, x.error, lw=1.2, label=label)
+        ax.set_yscale("log")
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel("‖p_d − p‖ [m]")
+        ax.set_title(f"{name}: tracking error{suffix}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        paths.append(_save(fig, os.path.join(out_dir, f"{prefix}{track}_error.png")))
+
+        fig, axes = plt.subplots(5, 1, figsize=(7, 9), sharex=True)
+        names = ("a0 (thrust)", "a1 (ω_x)", "a2 (ω_y)", "a3 (ω_z)", "‖a‖")
+        for label, x in runs.items():
+            for j in range(4):
+                axes[j].plot(x.t, x.action[:, j], lw=1.0, label=label)
+            axes[4].plot(x.t, np.linalg.norm(x.action, axis=-1), lw=1.0, label=label)
+        for ax, ylabel in zip(axes, names, strict=True):
+            ax.set_ylabel(ylabel)
+            ax.grid(alpha=0.3)
+        axes[0].set_title(f"{name}: applied normalised actions{action_note}{suffix}")
+        axes[0].legend(fontsize=8)
+        axes[-1].set_xlabel("t [s]")
+        paths.append(_save(fig, os.path.join(out_dir, f"{prefix}{track}_actions.png")))
+    return paths
+
+
+def _save(fig, path: str) -> str:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+# --------------------------------------------------------------------------- CLI helpers
+
+
+def _json_safe(x):
+    """JSON-ready copy: non-finite floats become None (strict JSON has no inf/nan)."""
+    if isinstance(x, dict):
+        return {str(k): _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def _fmt(x: float, spec: str) -> str:
+    return format(x, spec) if math.isfinite(x) else "inf" if x > 0 else "nan"
+
+
+def format_results(results: dict[str, dict[str, dict]], timing: bool) -> str:
+    """The CLI's table: one row per (label, track)."""
+    head = f"{'':<14} {'track':<10} {'Σ||e|| [m]':>11} {'RMSE [m]':>9} {'max [m]':>8} {'crash':>5} "
+    head += f"{'Σ||a||':>8} {'Σaᵀa':>8}"
+    if timing:
+        head += f" {'steps':>5} {'compile s':>9} {'loop s':>7} {'scan s':>7} {'act ms':>7}"
+    lines = [head]
+    for label, per_track in results.items():
+        for name, m in per_track.items():
+            row = (
+                f"{label:<14} {name:<10} {_fmt(m['tracking_error'], '11.2f')} {_fmt(m['rmse'], '9.4f')} "
+                f"{_fmt(m['max_error'], '8.4f')} {int(m['crashed']):>5} {_fmt(m['energy'], '8.1f')} "
+                f"{_fmt(m['energy_sq'], '8.1f')}"
+            )
+            if timing:
+                row += (
+                    f" {m['control_steps']:>5} {m['compile_scan_s']:>9.2f} {m['loop_s']:>7.3f} "
+                    f"{m['scan_s']:>7.3f} {m['act_ms']:>7.3f}"
+                )
+            lines.append(row)
+    return "\n".join(lines)
+
+
+def format_robustness(label: str, rob: dict) -> str:
+    """Robustness table of one controller."""
+    seeds = next(iter(rob.values()))["los_rt"]["seeds"]
+    lines = [
+        f"robustness of {label}: Spiral-RT, and LOS-RT seeds {seeds[0]}..{seeds[-1]} (mean ± std over "
+        f"{len(seeds)})",
+        f"{'condition':<10} {'Spiral Σ||e||':>13} {'LOS Σ||e|| mean ± std':>24} {'LOS crashes':>11} "
+        f"{'LOS Σ||a|| mean ± std':>22}",
+    ]
+    for name, r in rob.items():
+        los = r["los_rt"]
+        e, a = los["tracking_error"], los["energy"]
+        lines.append(
+            f"{name:<10} {_fmt(r['spiral_rt']['tracking_error'], '13.2f')} "
+            f"{_fmt(e['mean'], '13.2f')} ± {_fmt(e['std'], '8.2f')} "
+            f"{los['crashed']:>5}/{len(los['seeds']):<5} "
+            f"{_fmt(a['mean'], '12.1f')} ± {_fmt(a['std'], '7.1f')}"
+        )
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- CLI
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
         prog="python -m ttd3_jax.evaluate",
-        description="Run a controller in closed loop on Spiral-RT and LOS-RT and print tracking metrics.",
+        description=(
+            "Evaluate a trained policy (RUN_DIR) or a classical controller (--controller) in closed loop "
+            "on Spiral-RT and LOS-RT: tracking metrics, run times, optional robustness, JSON and plots."
+        ),
     )
-    ap.add_argument("--controller", default="geometric", choices=CONTROLLERS)
-    ap.add_argument("--preset", default="paper", choices=PRESETS, help="environment preset")
+    ap.add_argument("run_dir", nargs="?", default=None, help="training run directory: evaluate its policy")
+    ap.add_argument(
+        "--controller", default=None, choices=CONTROLLERS, help="classical controller (default geometric)"
+    )
+    ap.add_argument("--epoch", type=int, default=None, help="checkpoint of RUN_DIR (default: the latest)")
+    ap.add_argument("--seed-index", type=int, default=None, help="only this seed of RUN_DIR (default: all)")
+    ap.add_argument(
+        "--preset", default=None, choices=PRESETS, help="env preset of --controller (default paper)"
+    )
     ap.add_argument("--track", default="all", choices=("all", *tr.TEST_TRACKS))
     ap.add_argument("--los-seed", type=int, default=0, help="LOS-RT test instance (0 = headline)")
-    ap.add_argument("--json", default=None, help="also write the metrics to this JSON file")
+    ap.add_argument("--json", default=None, help="write results here (default RUN_DIR/evaluation.json)")
+    ap.add_argument("--plots", default=None, help="write plots here (default: the JSON file's directory)")
+    ap.add_argument(
+        "--timing",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="measure run times: Python loop, scan, per-call latency (default on)",
+    )
+    ap.add_argument("--repeats", type=int, default=3, help="timed runs per run-time figure (default 3)")
+    ap.add_argument("--robustness", action="store_true", help="also evaluate under wind, mass, noise, delay")
+    ap.add_argument("--robustness-seeds", type=int, default=20, help="LOS-RT seeds 1..N for --robustness")
     ap.add_argument("--nmpc-horizon", type=int, default=None, help="NMPC nodes N (nmpc only)")
     ap.add_argument(
         "--nmpc-solve-every", type=int, default=None, help="NMPC control steps between re-solves (nmpc only)"
@@ -183,6 +769,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.los_seed < 0:
         ap.error(f"--los-seed must be >= 0, got {args.los_seed}")
+    if args.repeats < 1:
+        ap.error(f"--repeats must be >= 1, got {args.repeats}")
+    if args.robustness_seeds < 1:
+        ap.error(f"--robustness-seeds must be >= 1, got {args.robustness_seeds}")
     options = {
         name: value
         for name, value in (
@@ -192,44 +782,107 @@ def main(argv=None) -> int:
         )
         if value is not None
     }
-    if options and args.controller != "nmpc":
-        ap.error("--nmpc-* options need --controller nmpc")
-    if options:
-        from ttd3_jax.nmpc import NMPCConfig
+    if args.run_dir is not None:
+        for flag, value in (("--controller", args.controller), ("--preset", args.preset)):
+            if value is not None:
+                ap.error(f"{flag} does not apply to RUN_DIR (the run's policy and env config are used)")
+        if options:
+            ap.error("--nmpc-* options need --controller nmpc")
+    else:
+        for flag, value in (("--epoch", args.epoch), ("--seed-index", args.seed_index)):
+            if value is not None:
+                ap.error(f"{flag} needs RUN_DIR")
+        args.controller = args.controller or "geometric"
+        args.preset = args.preset or "paper"
+        if options and args.controller != "nmpc":
+            ap.error("--nmpc-* options need --controller nmpc")
+        if options:
+            from ttd3_jax.nmpc import NMPCConfig
+
+            try:
+                NMPCConfig(**options)
+            except ValueError as e:
+                ap.error(str(e))
+
+    device = device_description()
+    header: dict = {"device": device, "los_seed": args.los_seed}
+    if args.run_dir is not None:
+        from ttd3_jax.runner import load_config
 
         try:
-            NMPCConfig(**options)
-        except ValueError as e:
-            ap.error(str(e))
-    cfg = make_config(args.preset)
-    tracks = tr.TEST_TRACKS if args.track == "all" else (args.track,)
-    opts = "".join(f" {k}={v}" for k, v in options.items())
-    print(f"controller={args.controller}{opts} preset={args.preset} device={jax.devices()[0].platform}")
-    header = f"{'track':<10} {'Σ||e|| [m]':>11} {'RMSE [m]':>9} {'max [m]':>8} {'crash':>5} "
-    header += f"{'Σ||a||':>8} {'Σaᵀa':>8} {'compile s':>9} {'run ms':>7}"
-    print(header)
-    results = {}
-    for name in tracks:
-        m, tc, trun = evaluate_track(cfg, args.controller, name, args.los_seed, **options)
-        results[name] = dict(m, compile_s=tc, run_s=trun)
+            num_seeds = load_config(args.run_dir).num_seeds
+            if args.seed_index is not None and not 0 <= args.seed_index < num_seeds:
+                raise ValueError(f"--seed-index must be in [0, {num_seeds - 1}], got {args.seed_index}")
+            run = load_run(args.run_dir, args.epoch)
+        except (FileNotFoundError, ValueError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        thetas = run.thetas if args.seed_index is None else [run.thetas[args.seed_index]]
+        cfg, build = run.env_config, run.build
+        labels = {f"seed {s}": theta for s, theta in thetas}
+        c = run.config
+        header.update(run_dir=args.run_dir, epoch=run.epoch, algo=c.algo, env_preset=c.env_preset)
         print(
-            f"{name:<10} {m['tracking_error']:>11.2f} {m['rmse']:>9.4f} {m['max_error']:>8.4f} "
-            f"{int(m['crashed']):>5} {m['energy']:>8.1f} {m['energy_sq']:>8.1f} {tc:>9.2f} {1e3 * trun:>7.2f}"
+            f"run {args.run_dir} epoch {run.epoch} ({c.algo}, env preset {c.env_preset}, "
+            f"hover_centered_thrust={c.hover_centered_thrust}) device={device}"
         )
-    print("paper T-TD3: Spiral-RT 25.99, LOS-RT 398.74 (Σ||e||); MPC: 78.47, 542.92")
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(
-                {
-                    "controller": args.controller,
-                    "options": options,
-                    "preset": args.preset,
-                    "results": results,
-                },
-                fh,
-                indent=2,
-            )
-        print(f"wrote {args.json}")
+        sequential = False
+    else:
+        cfg = make_config(args.preset)
+        build = controller_build(args.controller, cfg.for_eval("los_rt"), **options)
+        labels = {args.controller: None}
+        header.update(controller=args.controller, options=options, preset=args.preset)
+        opts = "".join(f" {k}={v}" for k, v in options.items())
+        print(f"controller={args.controller}{opts} preset={args.preset} device={device}")
+        sequential = args.controller == "nmpc" and options.get("solve_every", 1) > 1
+    header["env_config"] = dataclasses.asdict(cfg)
+    tracks = tr.TEST_TRACKS if args.track == "all" else (args.track,)
+    ev = Evaluator(TrackingEnv(cfg.for_eval("los_rt", los_seed=args.los_seed)), build, sequential)
+    results, traces = {}, {}
+    for label, theta in labels.items():
+        results[label], traces[label] = evaluate_controller(
+            ev, theta, args.los_seed, tracks, args.timing, args.repeats
+        )
+    print(format_results(results, args.timing))
+    p = PAPER
+    print(
+        "paper Σ||e|| / Σ√(uᵀu) / run s: T-TD3 Spiral-RT "
+        f"{p['T-TD3']['spiral_rt']['tracking_error']} / {p['T-TD3']['spiral_rt']['energy']:.1f} / "
+        f"{p['T-TD3']['spiral_rt']['run_s']:.2f}, LOS-RT {p['T-TD3']['los_rt']['tracking_error']} / "
+        f"{p['T-TD3']['los_rt']['energy']:.1f} / {p['T-TD3']['los_rt']['run_s']:.2f}; MPC Spiral-RT "
+        f"{p['MPC']['spiral_rt']['tracking_error']} / {p['MPC']['spiral_rt']['energy']:.1f} / "
+        f"{p['MPC']['spiral_rt']['run_s']:.2f}, LOS-RT {p['MPC']['los_rt']['tracking_error']} / "
+        f"{p['MPC']['los_rt']['energy']:.1f} / {p['MPC']['los_rt']['run_s']:.2f}"
+    )
+    if args.timing:
+        print(
+            "loop s: Python loop over a jitted controller+env step (mean of "
+            f"{args.repeats}); scan s: one compiled scan; act ms: jitted act alone per call"
+        )
+    out: dict = dict(header, results=results, paper=PAPER)
+    if args.robustness:
+        seeds = range(1, args.robustness_seeds + 1)
+        out["robustness"] = {}
+        out["robustness_conditions"] = ROBUSTNESS_DESCRIPTIONS
+        for label, theta in labels.items():
+            rob = evaluate_robustness(build, theta, cfg, seeds, sequential=sequential)
+            out["robustness"][label] = rob
+            print(format_robustness(label, rob))
+        for name, text in ROBUSTNESS_DESCRIPTIONS.items():
+            print(f"  {name}: {text}")
+    json_path = args.json
+    if json_path is None and args.run_dir is not None:
+        json_path = os.path.join(args.run_dir, "evaluation.json")
+    if json_path:
+        os.makedirs(os.path.dirname(os.path.abspath(json_path)), exist_ok=True)
+        with open(json_path, "w") as fh:
+            json.dump(_json_safe(out), fh, indent=2, default=str)
+        print(f"wrote {json_path}")
+    plots = args.plots or (os.path.dirname(os.path.abspath(json_path)) if json_path else None)
+    if plots:
+        title = header.get("algo", args.controller)
+        paths = plot_traces(traces, plots, title, args.los_seed)
+        print(f"wrote {len(paths)} plots to {plots}")
     return 0
 
 

@@ -23,7 +23,15 @@ import numpy as np
 
 from ttd3_jax import checkpoint as ckpt
 from ttd3_jax import noise as nz
-from ttd3_jax.train import QUADROTOR, Hyper, TrainConfig, buffer_bytes, make_trainer, seed_keys
+from ttd3_jax import train as train_lib
+from ttd3_jax.train import (
+    QUADROTOR,
+    Hyper,
+    TrainConfig,
+    buffer_bytes,
+    make_trainer,
+    seed_keys,
+)
 
 PAPER_TTD3 = {"spiral_tracking_error": 25.99, "los_tracking_error": 398.74}
 
@@ -47,12 +55,37 @@ def config_from_dict(d: dict) -> TrainConfig:
     return TrainConfig(**d)
 
 
+def env_config_dict(c: TrainConfig) -> dict | None:
+    """The quadrotor env config a run trains and evaluates with, as plain JSON values."""
+    if c.env != QUADROTOR:
+        return None
+    # looked up at call time, so experiments that swap the env builder are recorded truly
+    return json.loads(json.dumps(dataclasses.asdict(train_lib.quad_env_config(c))))
+
+
 def load_config(run_dir: str) -> TrainConfig:
+    """A run's config.  Raises ``ValueError`` if the env config the code builds for it
+    today differs from the one it was trained with (``env_config.json``), e.g. after a
+    preset changed: its policy would then see a different observation or reward."""
     path = os.path.join(run_dir, "config.json")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"no config.json in {run_dir!r}: not a ttd3_jax run directory")
     with open(path) as fh:
-        return config_from_dict(json.load(fh))
+        c = config_from_dict(json.load(fh))
+    env_path = os.path.join(run_dir, "env_config.json")
+    if os.path.isfile(env_path):
+        with open(env_path) as fh:
+            saved = json.load(fh)
+        now = env_config_dict(c)
+        diff = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
+        if diff:
+            raise ValueError(
+                f"run {run_dir!r} was trained with a different env config than preset "
+                f"{c.env_preset!r} builds today (fields {diff}: saved "
+                f"{ {k: saved.get(k) for k in diff} }, now { {k: now.get(k) for k in diff} }); "
+                "use the code version that trained it"
+            )
+    return c
 
 
 def per_seed(fn, c: TrainConfig, in_axes: tuple):
@@ -265,6 +298,9 @@ def run(
         run_dir = new_run_dir(out, c)
         with open(os.path.join(run_dir, "config.json"), "w") as fh:
             json.dump(config_to_dict(c), fh, indent=2)
+        if c.env == QUADROTOR:
+            with open(os.path.join(run_dir, "env_config.json"), "w") as fh:
+                json.dump(env_config_dict(c), fh, indent=2)
     mngr = ckpt.manager(run_dir)
     keys, hp = seed_keys(c), c.hp
     init_fn = jax.jit(per_seed(trainer.init, c, (0, None)))

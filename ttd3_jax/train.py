@@ -490,8 +490,10 @@ def preset(name: str, **overrides) -> TrainConfig:
     """Named training configurations.
 
     ``paper``: the published quadrotor settings (spec §2.4), 3e6 transitions.
-    ``fast``: quadrotor with the ``practical`` env (10 ms actions, 50 ms look-ahead),
-    hover-centred thrust and rewards scaled by 0.01; aimed at a laptop CPU.
+    ``fast``: quadrotor with the ``practical`` env (10 ms actions, 50 ms look-ahead,
+    track-frame observation), hover-centred thrust, running observation normalisation,
+    64-64 networks, 16 updates per 64-env step and rewards scaled by 0.01; aimed at a
+    laptop CPU (about 2 minutes on 2 cores).
     Status: still being tuned (see docs/results.md).
     ``mujoco``: the MuJoCo protocol (spec §2.7): 1 env, 1 update per step, τ = 0.005,
     c = 0.5, 1e6 steps, L_nom = 1000.
@@ -503,12 +505,14 @@ def preset(name: str, **overrides) -> TrainConfig:
             env_preset="practical",
             hover_centered_thrust=True,
             num_envs=64,
-            total_transitions=300_000,
+            total_transitions=450_000,
             warmup_transitions=10_000,
-            buffer_size=300_000,
+            buffer_size=450_000,
             batch_size=256,
-            updates_per_step=8,
-            epochs=20,
+            updates_per_step=16,
+            hidden=(64, 64),
+            normalize_obs=True,
+            epochs=15,
             hp=Hyper(tau=0.005, reward_scale=0.01),
         )
     elif name == "mujoco":

@@ -1,0 +1,142 @@
+"""Trainer throughput: transitions/s and gradient updates/s of one compiled epoch.
+
+All cases are compiled first (compile time reported apart), then timed interleaved,
+best of ``--repeats``, so machine noise hits every case alike.  Ratios are against the
+first case of each group, measured in the same process.
+
+    python benchmarks/trainer_throughput.py            # the study in docs/performance.md
+    python benchmarks/trainer_throughput.py --quick    # smoke run (CI)
+
+Cases (quadrotor, ``fast`` preset unless stated):
+  fast            the preset: 64 envs x 16 updates per vector step, 64-64 networks
+  fast_vmap1      the same, run through ``vmap`` over a seed axis of size 1 (what the
+                  runner did before single-seed runs skipped vmap: lax.cond becomes select)
+  envs16_utd16    16 envs x 16 updates: one update per transition
+  envs256_utd16   256 envs x 16 updates: collection-heavy
+  net256          256-256 networks (the paper's width)
+  seeds4          4 seeds vmapped in one program (per-seed figures are the total / 4)
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import time
+
+import jax
+
+from ttd3_jax.train import make_trainer, preset, seed_keys
+
+
+def cases(quick: bool) -> dict:
+    steps = 2_000 if quick else 40_000  # transitions per timed epoch, per seed
+    base = dict(epochs=1, warmup_transitions=4_096, buffer_size=100_000)
+    if quick:
+        base.update(hidden=(32, 32), warmup_transitions=512, buffer_size=8_192)
+
+    def cfg(num_envs=64, **kw):
+        total = kw.pop("total", steps) + base["warmup_transitions"]
+        return preset("fast", **{**base, "num_envs": num_envs, "total_transitions": total, **kw})
+
+    out = {
+        "fast": (cfg(), False),
+        "fast_vmap1": (cfg(), True),
+        "envs16_utd16": (cfg(num_envs=16, total=steps // 4), False),
+        "envs256_utd16": (cfg(num_envs=256, total=steps * 4), False),
+        "net256": (cfg(hidden=(256, 256), total=steps // 4), False),
+        "seeds4": (cfg(num_seeds=4, total=steps // 2), True),
+    }
+    if quick:
+        out = {k: out[k] for k in ("fast", "fast_vmap1")}
+    return out
+
+
+def build(c, vmapped: bool):
+    t = make_trainer(c)
+    keys = seed_keys(c)
+    if vmapped:
+        init = jax.jit(jax.vmap(t.init, in_axes=(0, None)))
+        epoch = jax.vmap(t.epoch, in_axes=(0, None))
+        ts = init(keys, c.hp)
+    else:
+        ts = jax.jit(t.init)(keys[0], c.hp)
+        epoch = t.epoch
+    jax.block_until_ready(ts)
+    t0 = time.perf_counter()
+    compiled = jax.jit(epoch).lower(ts, c.hp).compile()
+    return compiled, ts, time.perf_counter() - t0
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--quick", action="store_true", help="tiny sizes, to keep the script alive in CI")
+    ap.add_argument("--out", default="benchmarks/results/trainer_throughput.jsonl")
+    args = ap.parse_args(argv)
+    if args.repeats < 1:
+        ap.error(f"--repeats must be >= 1, got {args.repeats}")
+    if args.quick:
+        args.repeats = 1
+
+    built = {}
+    for name, (c, vmapped) in cases(args.quick).items():
+        built[name] = (c, *build(c, vmapped))
+    best = {name: float("inf") for name in built}
+    for _ in range(args.repeats):
+        for name, (c, fn, ts, _) in built.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(ts, c.hp))
+            best[name] = min(best[name], time.perf_counter() - t0)
+
+    dev = jax.devices()[0]
+    print(f"device={dev.platform} ({dev.device_kind}) cpus={os.cpu_count()} jax={jax.__version__}")
+    print(
+        f"{'case':<14} {'envs':>5} {'UTD':>4} {'hidden':>8} {'seeds':>5} {'compile s':>9} {'run s':>7} "
+        f"{'trans/s':>9} {'upd/s':>8} {'x fast':>6}"
+    )
+    fc = built["fast"][0]
+    fast_upd = fc.steps_per_epoch * fc.updates_per_step / best["fast"]
+    rows = []
+    for name, (c, _, _, comp) in built.items():
+        trans = c.num_seeds * c.steps_per_epoch * c.num_envs
+        upd = c.num_seeds * c.steps_per_epoch * c.updates_per_step
+        row = dict(
+            case=name,
+            num_envs=c.num_envs,
+            updates_per_step=c.updates_per_step,
+            hidden=list(c.hidden),
+            num_seeds=c.num_seeds,
+            compile_s=comp,
+            run_s=best[name],
+            transitions_per_s=trans / best[name],
+            updates_per_s=upd / best[name],
+        )
+        row["updates_per_s_vs_fast"] = row["updates_per_s"] / fast_upd
+        rows.append(row)
+        print(
+            f"{name:<14} {c.num_envs:>5} {c.updates_per_step:>4} {'-'.join(map(str, c.hidden)):>8} "
+            f"{c.num_seeds:>5} {comp:>9.1f} {best[name]:>7.2f} {row['transitions_per_s']:>9.3g} "
+            f"{row['updates_per_s']:>8.3g} {row['updates_per_s_vs_fast']:>6.2f}"
+        )
+    record = dict(
+        date=datetime.datetime.now().isoformat(timespec="seconds"),
+        machine=platform.machine(),
+        cpus=os.cpu_count(),
+        device=dev.device_kind,
+        jax=jax.__version__,
+        quick=args.quick,
+        rows=rows,
+    )
+    if args.out:
+        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+        with open(args.out, "a") as fh:
+            fh.write(json.dumps(record) + "\n")
+        print(f"appended to {args.out}")
+    return record
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""Single-seed variants of the ``fast`` preset, as explored while tuning it (docs/results.md).
+
+Each variant is the ``fast`` preset plus a few overrides of the env config, the
+``TrainConfig`` or ``Hyper``.  Env overrides are applied by swapping
+``ttd3_jax.train.quad_env_config`` for this process only (the CLI does not expose
+every env field).  The script trains each variant, then prints the median Spiral-RT
+and LOS-RT tracking error over the last five evaluations (evaluations are noisy from
+epoch to epoch) and the best single evaluation.
+
+    python experiments/tune_fast.py --list
+    python experiments/tune_fast.py --variant fast --variant world_frame
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+
+from ttd3_jax import train as T
+from ttd3_jax.env import make_config
+from ttd3_jax.runner import read_metrics, run
+
+# name: (env overrides, TrainConfig overrides, Hyper overrides)
+VARIANTS = {
+    "fast": ({}, {}, {}),
+    "world_frame": ({"obs_frame": "world"}, {}, {}),
+    "e_max_2m": ({"e_max": 2.0}, {}, {}),
+    "no_obs_norm": ({}, {"normalize_obs": False}, {}),
+    "no_wind": ({"wind_sigma": 0.0}, {}, {}),
+    "target_noise_small": ({}, {}, {"target_sigma": 0.05, "target_clip": 0.05}),
+    "reward_scale_0.1": ({}, {}, {"reward_scale": 0.1}),
+    "velocity_cost": ({"rho_vel": 0.3}, {}, {}),
+    "yaw_effort_10": ({"effort_weights": (1.0, 1.0, 1.0, 10.0)}, {}, {}),
+    "td3_sigma_0.05": ({}, {"algo": "td3"}, {"sigma": 0.05}),
+    "ttd3_lambda_0.001": ({}, {}, {"lam": 0.001}),
+    "caps": ({}, {}, {"lam": 0.001, "smooth_time": 0.5, "smooth_space": 0.5}),
+    "actor_lr_1e-3_delay_1": ({}, {"policy_delay": 1}, {"lr_actor": 1e-3}),
+    "gamma_0.995": ({}, {}, {"gamma": 0.995}),
+    "hidden_128": ({}, {"hidden": (128, 128)}, {}),
+    "utd_1": ({}, {"num_envs": 16, "total_transitions": 300_000, "buffer_size": 300_000}, {}),
+    "lr_linear_900k": ({}, {"total_transitions": 900_000, "buffer_size": 900_000, "epochs": 30,
+                            "lr_schedule": "linear"}, {}),  # fmt: skip
+}
+
+
+def config_for(name: str) -> tuple[T.TrainConfig, dict]:
+    env_o, cfg_o, hp_o = VARIANTS[name]
+    c = T.preset("fast", **cfg_o)
+    c = dataclasses.replace(c, hp=dataclasses.replace(c.hp, **hp_o))
+    return T.with_algo(c, c.algo), env_o
+
+
+def run_variant(name: str, out: str) -> dict:
+    c, env_o = config_for(name)
+    original = T.quad_env_config
+    T.quad_env_config = lambda cfg: make_config(
+        cfg.env_preset, hover_centered_thrust=cfg.hover_centered_thrust, **env_o
+    )
+    try:
+        summary = run(c, out=f"{out}/{name}")
+    finally:
+        T.quad_env_config = original
+    rows = read_metrics(summary["run_dir"])
+    sp = [float(r["spiral_tracking_error"]) for r in rows]
+    los = [float(r["los_tracking_error"]) for r in rows]
+    return dict(
+        variant=name,
+        spiral_last5=statistics.median(sp[-5:]),
+        los_last5=statistics.median(los[-5:]),
+        spiral_best=min(sp),
+        los_best=min(los),
+        run_dir=summary["run_dir"],
+    )
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--variant", action="append", default=None, help="repeatable; default: all")
+    ap.add_argument("--out", default="runs/tune_fast")
+    ap.add_argument("--list", action="store_true")
+    args = ap.parse_args(argv)
+    if args.list:
+        for name, (e, c, h) in VARIANTS.items():
+            print(f"{name:<24} env={e} cfg={c} hp={h}")
+        return 0
+    names = args.variant or list(VARIANTS)
+    bad = [n for n in names if n not in VARIANTS]
+    if bad:
+        ap.error(f"unknown variant(s) {bad}; allowed: {list(VARIANTS)}")
+    results = [run_variant(n, args.out) for n in names]
+    head = f"{'variant':<24} {'Spiral last-5 median':>21} {'LOS last-5 median':>18}"
+    print(f"{head} {'best Spiral':>11} {'best LOS':>9}")
+    for r in results:
+        print(
+            f"{r['variant']:<24} {r['spiral_last5']:>21.1f} {r['los_last5']:>18.1f} "
+            f"{r['spiral_best']:>11.1f} {r['los_best']:>9.1f}"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,175 @@
+"""Evaluation of saved runs, run-time figures and robustness (``ttd3_jax.evaluate``), and the
+env's robustness options (``action_delay``, ``thrust_map_mass``)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ttd3_jax import checkpoint as ckpt
+from ttd3_jax.env import EnvConfig, TrackingEnv, hover_action, make_config
+from ttd3_jax.evaluate import (
+    ROBUSTNESS_CONDITIONS,
+    closed_loop,
+    controller_build,
+    evaluate_robustness,
+    hover_controller,
+    main,
+    robustness_conditions,
+)
+from ttd3_jax.evaluate import test_tracks as make_test_tracks
+from ttd3_jax.networks import init_params
+from ttd3_jax.runner import config_to_dict, per_seed, run
+from ttd3_jax.train import make_trainer, preset, seed_keys
+
+TINY = dict(
+    num_envs=16,
+    total_transitions=640,
+    warmup_transitions=128,
+    buffer_size=1024,
+    batch_size=64,
+    updates_per_step=2,
+    epochs=2,
+    hidden=(32, 32),
+)
+
+
+def fake_run_dir(path) -> str:
+    """A run directory as the runner writes it (config.json, an orbax checkpoint of the
+    whole train state at epoch 2), without the ~40 s of compiling a real run: the state is
+    zeros except for freshly initialised actor weights."""
+    c = preset("fast", **TINY)
+    trainer = make_trainer(c)
+    like = jax.eval_shape(per_seed(trainer.init, c, (0, None)), seed_keys(c), c.hp)
+    state = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), like)
+    actor, _ = init_params(trainer.nets, jax.random.PRNGKey(3), trainer.spec.obs_size, 4)
+    state = state.replace(actor=jax.tree.map(lambda x: x[None], actor))
+    os.makedirs(path)
+    with open(os.path.join(path, "config.json"), "w") as fh:
+        json.dump(config_to_dict(c), fh)
+    ckpt.save(ckpt.manager(str(path)), 2, state)
+    return str(path)
+
+
+def check_evaluation_json(run_dir: str, epoch: int) -> dict:
+    with open(os.path.join(run_dir, "evaluation.json")) as fh:
+        out = json.load(fh)
+    assert out["epoch"] == epoch and out["env_preset"] == "practical"
+    assert out["env_config"]["action_repeat"] == 10  # the run's env config, not the paper preset
+    res = out["results"]["seed 0"]
+    assert set(res) == {"spiral_rt", "los_rt"}
+    for m in res.values():
+        assert m["crashed"] in (0.0, 1.0)
+        assert m["energy"] > 0 and m["control_steps"] == 300
+        assert m["loop_s"] > 0 and m["scan_s"] > 0 and m["act_ms"] > 0 and m["compile_scan_s"] > 0
+        assert len(m["loop_runs_s"]) == 1
+    for track in ("spiral_rt", "los_rt"):
+        for kind in ("3d", "error", "actions"):
+            assert os.path.isfile(os.path.join(run_dir, f"{track}_{kind}.png"))
+    return out
+
+
+def test_cli_evaluates_a_saved_checkpoint(tmp_path, capsys):
+    run_dir = fake_run_dir(tmp_path / "run")
+    assert main([run_dir, "--repeats", "1"]) == 0
+    text = capsys.readouterr().out
+    assert "epoch 2" in text and "seed 0" in text and "loop s" in text
+    check_evaluation_json(run_dir, 2)
+    # flags that do not apply to a run directory are refused
+    with pytest.raises(SystemExit):
+        main([run_dir, "--controller", "nmpc"])
+    assert main([run_dir, "--seed-index", "3"]) == 2
+    assert main([str(tmp_path / "missing")]) == 2
+
+
+@pytest.mark.slow
+def test_cli_evaluates_a_real_tiny_run(tmp_path):
+    summary = run(preset("fast", **TINY), out=str(tmp_path), verbose=False)
+    assert main([summary["run_dir"], "--repeats", "1"]) == 0
+    check_evaluation_json(summary["run_dir"], 2)
+
+
+# --------------------------------------------------------------------------- env options
+
+
+def test_action_delay_applies_the_previous_action():
+    cfg = make_config("paper").for_eval("spiral_rt")
+    delayed, plain = TrackingEnv(cfg, action_delay=1), TrackingEnv(cfg)
+    key = jax.random.PRNGKey(0)
+    a, b = jnp.array([0.9, 0.3, -0.2, 0.1]), jnp.array([-0.5, 0.0, 0.4, 0.0])
+    hover = hover_action(cfg)
+    s1 = delayed.step(delayed.reset(key), a)
+    s2 = delayed.step(s1, b)
+    r1 = plain.step(plain.reset(key), hover)  # step 1 applies the reset's hover action ...
+    r2 = plain.step(r1, a)  # ... and step 2 applies a
+    for s, r in ((s1, r1), (s2, r2)):
+        jax.tree.map(np.testing.assert_array_equal, s.pipeline_state.quad, r.pipeline_state.quad)
+        assert float(s.metrics["energy"]) == pytest.approx(float(r.metrics["energy"]))
+    np.testing.assert_array_equal(s2.pipeline_state.prev_action, b)
+    # closed_loop records the applied (delayed) action
+    r = closed_loop(delayed, hover_controller(cfg), delayed.reset(key))
+    np.testing.assert_allclose(r.action, np.broadcast_to(hover, r.action.shape), atol=1e-7)
+    for bad in (2, -1, True, 0.5):
+        with pytest.raises(ValueError, match="action_delay"):
+            EnvConfig(action_delay=bad)
+    with pytest.raises(ValueError, match="thrust_map_mass"):
+        EnvConfig(thrust_map_mass=0.0)
+
+
+def test_mass_mismatch_is_unknown_to_the_controller():
+    # the hover-centred map (a0 = 0 is hover thrust) would leak the mass if it used the true mass
+    cfg = make_config("practical", episode_steps=500, hover_centered_thrust=True)
+    conds = robustness_conditions(cfg)
+    assert conds["mass+20"].quad.mass == pytest.approx(1.8)
+    assert conds["mass-20"].quad.mass == pytest.approx(1.2)
+    assert conds["nominal"].quad.mass == 1.5 and conds["nominal"].wind_sigma == 0.0
+    for name in ("mass+20", "mass-20"):  # the nominal hover action is the same in every condition
+        np.testing.assert_allclose(hover_action(conds[name]), hover_action(conds["nominal"]))
+    ctrl = hover_controller(conds["nominal"])  # the controller knows only the nominal config
+    # any track: the hover controller ignores it; only the vehicle's own climb or sink is measured
+    track = jax.tree.map(lambda x: x[0], make_test_tracks(TrackingEnv(conds["nominal"])))
+    dz = {}
+    for name in ("nominal", "mass+20", "mass-20"):
+        env = TrackingEnv(conds[name])
+        r = closed_loop(env, ctrl, env.reset_with_track(jax.random.PRNGKey(0), track))
+        dz[name] = float(r.pos[-1, 2] - r.pos[0, 2])
+    t = 0.5  # s
+    assert abs(dz["nominal"]) < 1e-3
+    # the heavier quad sinks with a = g(1/1.2 - 1), the lighter one climbs with g(1/0.8 - 1)
+    assert dz["mass+20"] == pytest.approx(-0.5 * 9.81 / 6 * t**2, rel=0.05)
+    assert dz["mass-20"] == pytest.approx(0.5 * 9.81 / 4 * t**2, rel=0.05)
+
+
+# --------------------------------------------------------------------------- robustness
+
+
+def test_robustness_returns_finite_statistics():
+    cfg = make_config("paper", episode_steps=300)
+    nominal = cfg.for_eval("los_rt")
+    seeds = (1, 2)
+    conditions = ("nominal", "wind", "obs_noise", "delay")  # the mass conditions: test above
+    geo = evaluate_robustness(controller_build("geometric", nominal), None, cfg, seeds, conditions)
+    assert tuple(geo) == conditions
+    for name, r in geo.items():
+        los = r["los_rt"]
+        assert los["seeds"] == [1, 2] and los["crashed"] == 0, name
+        for key in ("tracking_error", "energy", "energy_sq", "rmse", "max_error"):
+            assert math.isfinite(los[key]["mean"]) and math.isfinite(los[key]["std"]), (name, key)
+            assert los[key]["std"] >= 0
+        assert math.isfinite(r["spiral_rt"]["tracking_error"])
+    e = {k: v["los_rt"]["tracking_error"]["mean"] for k, v in geo.items()}
+    for name in conditions[1:]:  # each disturbance reaches the (sensed-state) geometric controller
+        assert e[name] != e["nominal"], name
+    build = controller_build("hover", nominal)
+    hover = evaluate_robustness(build, None, cfg, seeds, conditions=("mass+20",))
+    los = hover["mass+20"]["los_rt"]
+    assert math.isfinite(los["tracking_error"]["mean"]) and math.isfinite(los["tracking_error"]["std"])
+    assert set(ROBUSTNESS_CONDITIONS) == set(robustness_conditions(cfg))
+    with pytest.raises(ValueError, match="robustness condition"):
+        evaluate_robustness(build, None, cfg, seeds, conditions=("gusts",))
