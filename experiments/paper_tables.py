@@ -156,7 +156,8 @@ def tables_markdown(res: dict, n_seeds: int, repeats: int = 3) -> list[str]:
         )
     lines += [
         "",
-        "Crash = the error exceeded 2 m at some step (evaluation never terminates early). "
+        "Crash = the error exceeded the env's e_max at some step (2 m in the `paper` preset, "
+        "1 m in `practical`; evaluation never terminates early). "
         "Also in the JSON: RMSE and max error per track.",
         "",
         "### Table 4: energy Σ‖a‖ (applied normalised action, summed over 3000 steps)",
