@@ -38,9 +38,17 @@ VARIANTS = {
     "actor_lr_1e-3_delay_1": ({}, {"policy_delay": 1}, {"lr_actor": 1e-3}),
     "gamma_0.995": ({}, {}, {"gamma": 0.995}),
     "hidden_128": ({}, {"hidden": (128, 128)}, {}),
+    "batch_1024_lr_1e-3": (
+        {},
+        {"batch_size": 1024, "updates_per_step": 8},
+        {"lr_actor": 1e-3, "lr_critic": 1e-3},
+    ),  # fmt: skip
     "utd_1": ({}, {"num_envs": 16, "total_transitions": 300_000, "buffer_size": 300_000}, {}),
-    "lr_linear_900k": ({}, {"total_transitions": 900_000, "buffer_size": 900_000, "epochs": 30,
-                            "lr_schedule": "linear"}, {}),  # fmt: skip
+    "lr_linear_900k": (
+        {},
+        {"total_transitions": 900_000, "buffer_size": 900_000, "epochs": 30, "lr_schedule": "linear"},
+        {},
+    ),  # fmt: skip
 }
 
 
