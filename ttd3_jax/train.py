@@ -344,8 +344,13 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
         ts, _ = jax.lax.scan(warm, ts, jax.random.split(k_warm, c.warmup_steps))
         return ts
 
-    def _update(ts: TrainState, hp: Hyper, key: jax.Array):
-        """One critic step, the σ update and, every d-th update, the actor + target step."""
+    def _update(ts: TrainState, hp: Hyper, key: jax.Array, j: jax.Array):
+        """One critic step, the σ update and, every d-th update, the actor + target step.
+
+        ``j`` is this update's index within its vector step (from the scan, so it is not
+        batched under a seed ``vmap``).  When G is a multiple of d every vector step starts
+        at n_upd ≡ 0 (mod d), so "every d-th update" is decided by ``j`` alone and the
+        ``lax.cond`` stays a branch under ``vmap`` instead of becoming a select."""
         k_batch, k_target, k_smooth = jax.random.split(key, 3)
         batch = rb.sample(ts.buffer, k_batch, c.batch_size)
         if c.normalize_obs:
@@ -379,9 +384,11 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
             )
             return ts, a_loss
 
-        ts, a_loss = jax.lax.cond(
-            n_upd % c.policy_delay == 0, actor_step, lambda ts: (ts, jnp.full((), jnp.nan)), ts
-        )
+        if c.updates_per_step % c.policy_delay == 0:
+            due = (j + 1) % c.policy_delay == 0
+        else:
+            due = n_upd % c.policy_delay == 0
+        ts, a_loss = jax.lax.cond(due, actor_step, lambda ts: (ts, jnp.full((), jnp.nan)), ts)
         return ts, (c_loss, a_loss, aux["q_mean"])
 
     def _vector_step(ts: TrainState, hp: Hyper):
@@ -392,7 +399,9 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
         a = policy(ts, obs) + std * jax.random.normal(k_noise, (n, spec.action_size))
         ts, ret_sum, ret_n = _collect(ts, hp, jnp.clip(a, -1.0, 1.0), k_reset)
         ts, (c_loss, a_loss, q) = jax.lax.scan(
-            lambda t, k: _update(t, hp, k), ts, jax.random.split(k_upd, c.updates_per_step)
+            lambda t, x: _update(t, hp, *x),
+            ts,
+            (jax.random.split(k_upd, c.updates_per_step), jnp.arange(c.updates_per_step)),
         )
         out = dict(critic_loss=jnp.mean(c_loss), actor_loss=jnp.nanmean(a_loss), q_mean=jnp.mean(q))
         return ts, (out, ret_sum, ret_n)
