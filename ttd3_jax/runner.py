@@ -24,6 +24,7 @@ import numpy as np
 from ttd3_jax import checkpoint as ckpt
 from ttd3_jax import noise as nz
 from ttd3_jax import train as train_lib
+from ttd3_jax.sharding import runner_fns
 from ttd3_jax.train import (
     QUADROTOR,
     Hyper,
@@ -280,11 +281,16 @@ def run(
     resume: str | None = None,
     verbose: bool = True,
     stop_after: int | None = None,
+    checkpoint_every: int = 1,
 ) -> dict:
     """Train with config ``c`` into a new run directory under ``out``, or continue the run
     in ``resume``.  ``stop_after`` ends this call after that many epochs, as an
-    interruption would (resume continues).  Returns a summary dict (run_dir, final
-    eval, timings)."""
+    interruption would (resume continues).  A checkpoint is written every
+    ``checkpoint_every`` epochs and after the last one (a kill loses at most the epochs
+    since; large replay buffers make each save cost seconds).  Returns a summary dict
+    (run_dir, final eval, timings)."""
+    if not (isinstance(checkpoint_every, int) and checkpoint_every >= 1):
+        raise ValueError(f"checkpoint_every must be an integer >= 1, got {checkpoint_every!r}")
     log = print if verbose else (lambda *a, **k: None)
     if resume is not None:
         c = load_config(resume)
@@ -303,9 +309,8 @@ def run(
                 json.dump(env_config_dict(c), fh, indent=2)
     mngr = ckpt.manager(run_dir)
     keys, hp = seed_keys(c), c.hp
-    init_fn = jax.jit(per_seed(trainer.init, c, (0, None)))
-    epoch_fn = jax.jit(per_seed(trainer.epoch, c, (0, None)), donate_argnums=0)
-    eval_fn = jax.jit(per_seed(trainer.evaluate, c, (0,)))
+    # plain jit on one device; seeds (and envs) split over all visible devices otherwise
+    init_fn, epoch_fn, eval_fn, place = runner_fns(trainer, c, per_seed)
 
     t0 = time.perf_counter()
     start = ckpt.latest_epoch(mngr) if resume is not None else None
@@ -320,7 +325,7 @@ def run(
         log(f"init + warm-up ({n_warm} random transitions/seed): {time.perf_counter() - t0:.1f} s")
     else:
         like = jax.eval_shape(init_fn, keys, hp)
-        ts = ckpt.restore(mngr, start, like)
+        ts = place(ckpt.restore(mngr, start, like))
         csv_log = CsvLog(os.path.join(run_dir, "metrics.csv"), keep_through_epoch=start)
         log(f"resumed {run_dir} at epoch {start}/{c.epochs}")
 
@@ -356,7 +361,8 @@ def run(
         if tb is not None:
             for k, v in rows[0].items():
                 tb.add_scalar(k, v, int(rows[0]["env_steps"]))
-        ckpt.save(mngr, epoch, ts)
+        if epoch % checkpoint_every == 0 or epoch == last:
+            ckpt.save(mngr, epoch, ts)
         if live is not None:
             live.clear()
         log(_progress_line(epoch, c.epochs, m, ev, sps, c), flush=True)

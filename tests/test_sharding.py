@@ -1,0 +1,89 @@
+"""Sharded sweeps and runner: the same results on 4 (forced CPU) devices as unsharded, and
+the argument errors of ``ttd3_jax.sharding`` on one device."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from ttd3_jax.sharding import SWEEP, make_mesh, runner_fns, shard_vmapped
+from ttd3_jax.train import Hyper, preset
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+EXPECTED = (
+    "OK meshes",
+    "OK sweep of 4 on 4 devices equals jit(vmap)",
+    "OK padding and divisibility error",
+    "OK sharded runner epoch equals the unsharded fused train",
+    "OK runner.run sharded with resume",
+)
+
+
+def test_sharded_on_four_cpu_devices():
+    """tests/_sharded_check.py in a fresh process that sees 4 CPU devices (the device count
+    is fixed when JAX starts, so it cannot run in this process)."""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    p = subprocess.run(
+        [sys.executable, os.path.join(HERE, "_sharded_check.py")],
+        env=env,
+        cwd=os.path.dirname(HERE),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    output = f"--- stdout\n{p.stdout}\n--- stderr\n{p.stderr[-6000:]}"
+    assert p.returncode == 0, f"_sharded_check.py exited with {p.returncode}\n{output}"
+    lines = p.stdout.splitlines()
+    for want in EXPECTED:
+        assert any(line.startswith(want) for line in lines), f"missing {want!r}\n{output}"
+
+
+def _toy(k, b):
+    return jax.random.normal(k, (3,)) * b
+
+
+def test_mesh_and_shard_errors_on_one_device():
+    one = jax.devices()[:1]
+    mesh = make_mesh(devices=one)
+    assert dict(mesh.shape) == {SWEEP: 1, "env": 1}
+    with pytest.raises(ValueError, match="n_env"):
+        make_mesh(n_env=0, devices=one)
+    with pytest.raises(ValueError, match="n_env"):
+        make_mesh(n_env=2, devices=one)
+    with pytest.raises(ValueError, match="needs 2 devices"):
+        make_mesh(n_sweep=2, devices=one)
+
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    b = jnp.arange(3.0)
+    out = shard_vmapped(_toy, (0, 0), mesh=mesh)(keys, b)  # any size divides one device
+    assert out.shape == (3, 3)
+    with pytest.raises(ValueError, match="in_axes entries 0 or None"):
+        shard_vmapped(_toy, (1, None), mesh=mesh)
+    with pytest.raises(ValueError, match="one entry per argument"):
+        shard_vmapped(_toy, 0, mesh=mesh)
+    with pytest.raises(ValueError, match="different sizes"):
+        shard_vmapped(_toy, (0, 0), mesh=mesh)(keys, jnp.arange(2.0))
+    with pytest.raises(ValueError, match="maps no argument"):
+        shard_vmapped(_toy, (None, None), mesh=mesh)(keys[0], 1.0)
+
+
+def test_non_divisible_sweep_needs_pad():
+    """On one device, a mesh listing that device twice stands in for 2 sweep devices: the size
+    checks run before anything is placed (tests/_sharded_check.py runs the real thing)."""
+    d = jax.devices()[0]
+    fake = make_mesh(devices=[d, d])
+    assert fake.shape[SWEEP] == 2
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    with pytest.raises(ValueError, match="3 entries, not a multiple of the 2 devices"):
+        shard_vmapped(_toy, (0, None), mesh=fake)(keys, 2.0)
+    hp_axes = Hyper(**{**{f.name: None for f in dataclasses.fields(Hyper)}, "beta": 0})
+    with pytest.raises(ValueError, match="3 entries"):
+        shard_vmapped(lambda k, hp: hp.beta, (0, hp_axes), mesh=fake)(keys, Hyper(beta=jnp.zeros(3)))
+    with pytest.raises(ValueError, match="num_seeds"):
+        runner_fns(None, preset("fast", num_seeds=3), None, mesh=fake)

@@ -1,0 +1,176 @@
+"""Spread seed / hyperparameter sweeps and parallel envs over all visible devices.
+
+A vmapped sweep is embarrassingly parallel along its leading axis, so placing that axis on
+a device mesh (``jax.sharding``) runs each device's share of the seeds × hyperparameters
+with no communication; the parallel envs of each seed can additionally be split over a
+second mesh axis (the shared replay buffer is then gathered on insert).  The same code runs
+on one device (the mesh has one device, nothing moves) or on eight.
+
+* :func:`shard_vmapped` - ``jit(vmap(fn))`` with the mapped axis on the ``"sweep"`` mesh
+  axis, e.g. a whole sweep as one program: ``shard_vmapped(trainer.train, (0, hp_axes))``.
+* :func:`runner_fns` - the runner's ``init`` / ``epoch`` / ``evaluate`` with the seed axis
+  on ``"sweep"`` and the env axis of the env state on ``"env"`` (used by
+  :func:`ttd3_jax.runner.run`).
+
+Multi-host (``shard_vmapped`` sweeps): call ``jax.distributed.initialize()`` first on every
+host; ``jax.devices()`` then lists all hosts' devices and the same code shards over all of
+them (docs/scaling.md).  The runner (``runner_fns``) is single-process.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+SWEEP, ENV = "sweep", "env"
+
+
+def make_mesh(n_sweep: int | None = None, n_env: int = 1, devices: Sequence | None = None) -> Mesh:
+    """A 2-D ``(sweep, env)`` mesh over ``devices`` (default: all visible devices).
+
+    ``n_sweep`` defaults to ``len(devices) // n_env``; ``n_sweep * n_env`` devices are used."""
+    devices = list(jax.devices() if devices is None else devices)
+    if n_env < 1 or len(devices) % n_env:
+        raise ValueError(f"n_env ({n_env}) must be >= 1 and divide the {len(devices)} devices")
+    n_sweep = len(devices) // n_env if n_sweep is None else n_sweep
+    if n_sweep < 1 or n_sweep * n_env > len(devices):
+        need = n_sweep * n_env
+        raise ValueError(f"a {n_sweep} x {n_env} mesh needs {need} devices; {len(devices)} visible")
+    return Mesh(np.array(devices[: n_sweep * n_env]).reshape(n_sweep, n_env), (SWEEP, ENV))
+
+
+def _leading_size(args, in_axes) -> int:
+    sizes = []
+
+    def look(ax, sub):
+        if ax is None:
+            return
+        for x in jax.tree.leaves(sub):
+            if jnp.ndim(x) == 0:
+                raise ValueError("an argument mapped over axis 0 has a scalar leaf: nothing to map")
+            sizes.append(jnp.shape(x)[ax])
+
+    jax.tree.map(look, in_axes, args, is_leaf=lambda x: x is None)
+    if not sizes:
+        raise ValueError("in_axes maps no argument: nothing to shard")
+    if len(set(sizes)) != 1:
+        raise ValueError(f"mapped axes have different sizes {sorted(set(sizes))}")
+    return sizes[0]
+
+
+def _pad(x, axis: int, extra: int):
+    """Repeat the last entry along ``axis`` ``extra`` times."""
+    last = jax.lax.slice_in_dim(x, x.shape[axis] - 1, x.shape[axis], axis=axis)
+    return jnp.concatenate([x, jnp.repeat(last, extra, axis=axis)], axis=axis)
+
+
+def shard_vmapped(
+    fn: Callable, in_axes: tuple, mesh: Mesh | None = None, pad: bool = False, **jit_kw
+) -> Callable:
+    """``jit(vmap(fn, in_axes))`` with the mapped axis split over the mesh's ``sweep`` axis.
+
+    ``in_axes`` entries (prefix trees, e.g. a ``Hyper`` of 0 / None leaves) must be 0 or
+    ``None``; unmapped arguments are replicated.  The mapped size must be a multiple of the
+    number of sweep devices, else ``ValueError``; with ``pad=True`` the batch is padded by
+    repeating its last entry and the padding is cut from the outputs (cut outputs are
+    gathered, no longer split over the devices: return only what you need, e.g. metrics
+    rather than a train state with its replay buffer).  Results equal the unsharded
+    ``jit(vmap(fn))``: the computation is independent along the mapped axis."""
+    if not isinstance(in_axes, tuple | list):
+        raise ValueError(f"in_axes must be a tuple with one entry per argument, got {in_axes!r}")
+    for ax in jax.tree.leaves(in_axes):
+        if type(ax) is not int or ax != 0:
+            raise ValueError(f"shard_vmapped supports in_axes entries 0 or None, got {ax!r}")
+    mesh = make_mesh() if mesh is None else mesh
+    n_dev = mesh.shape[SWEEP]
+    vf = jax.jit(jax.vmap(fn, in_axes=tuple(in_axes)), out_shardings=NamedSharding(mesh, P(SWEEP)), **jit_kw)
+    none = lambda x: x is None
+
+    def call(*args):
+        args = tuple(args)
+        if len(args) != len(in_axes):
+            raise ValueError(f"got {len(args)} arguments for {len(in_axes)} in_axes entries")
+        n = _leading_size(args, tuple(in_axes))
+        extra = -n % n_dev
+        if extra and not pad:
+            raise ValueError(
+                f"the sweep has {n} entries, not a multiple of the {n_dev} devices on the mesh's "
+                f"{SWEEP!r} axis; pass pad=True, or use a mesh with fewer devices (make_mesh(n_sweep=...))"
+            )
+
+        def place(ax, sub):
+            if ax is None:
+                return jax.device_put(sub, NamedSharding(mesh, P()))
+            if extra:
+                sub = jax.tree.map(lambda x: _pad(jnp.asarray(x), 0, extra), sub)
+            return jax.tree.map(lambda x: jax.device_put(x, NamedSharding(mesh, P(SWEEP))), sub)
+
+        out = vf(*jax.tree.map(place, tuple(in_axes), args, is_leaf=none))
+        return jax.tree.map(lambda x: x[:n], out) if extra else out
+
+    call.mesh = mesh
+    return call
+
+
+def seed_env_mesh(num_seeds: int, num_envs: int, devices: Sequence | None = None) -> Mesh:
+    """The largest ``(sweep, env)`` mesh whose axes divide ``num_seeds`` and ``num_envs``:
+    seeds are split first (no communication), then envs with the devices left over."""
+    devices = list(jax.devices() if devices is None else devices)
+    n = len(devices)
+    n_sweep = max(d for d in range(1, n + 1) if n % d == 0 and num_seeds % d == 0)
+    rest = n // n_sweep
+    n_env = max(d for d in range(1, rest + 1) if rest % d == 0 and num_envs % d == 0)
+    return make_mesh(n_sweep, n_env, devices)
+
+
+def state_shardings(state, mesh: Mesh, num_envs: int):
+    """Shardings for a train state with the seed axis in front: every leaf on ``sweep``
+    along axis 0; leaves of ``env_state`` and ``ep_return`` also on ``env`` along axis 1."""
+    n_env = mesh.shape[ENV]
+
+    def leaf(x, env_axis: bool):
+        shape = jnp.shape(x)
+        if len(shape) == 0:
+            return NamedSharding(mesh, P())
+        if env_axis and len(shape) >= 2 and shape[1] == num_envs and num_envs % n_env == 0:
+            return NamedSharding(mesh, P(SWEEP, ENV))
+        return NamedSharding(mesh, P(SWEEP))
+
+    env_like = {"env_state", "ep_return"}
+    fields = {name: getattr(state, name) for name in state.__dataclass_fields__}
+    out = {k: jax.tree.map(lambda x, e=(k in env_like): leaf(x, e), v) for k, v in fields.items()}
+    return state.replace(**out)
+
+
+def runner_fns(trainer, c, per_seed: Callable, mesh: Mesh | None = None):
+    """``(init_fn, epoch_fn, eval_fn, place)`` for :func:`ttd3_jax.runner.run`.
+
+    On one device these are the plain ``jit(per_seed(...))`` functions and ``place`` is the
+    identity.  With several devices, the seed axis is split over ``sweep`` and the env axis
+    over ``env`` (:func:`seed_env_mesh`); ``place(state)`` puts a restored state on the mesh.
+    Single process only: the runner reads metrics and checkpoints on its host."""
+    mesh = seed_env_mesh(c.num_seeds, c.num_envs) if mesh is None else mesh
+    if c.num_seeds % mesh.shape[SWEEP]:
+        raise ValueError(
+            f"num_seeds ({c.num_seeds}) must be a multiple of the mesh's {SWEEP!r} axis ({mesh.shape[SWEEP]})"
+        )
+    init = per_seed(trainer.init, c, (0, None))
+    epoch = per_seed(trainer.epoch, c, (0, None))
+    evaluate = per_seed(trainer.evaluate, c, (0,))
+    if math.prod(mesh.devices.shape) == 1:
+        return jax.jit(init), jax.jit(epoch, donate_argnums=0), jax.jit(evaluate), lambda ts: ts
+    from ttd3_jax.train import seed_keys
+
+    like = jax.eval_shape(init, seed_keys(c), c.hp)
+    st = state_shardings(like, mesh, c.num_envs)
+    seeds, repl = NamedSharding(mesh, P(SWEEP)), NamedSharding(mesh, P())
+    init_fn = jax.jit(init, in_shardings=(seeds, repl), out_shardings=st)
+    epoch_fn = jax.jit(epoch, in_shardings=(st, repl), out_shardings=(st, seeds), donate_argnums=0)
+    eval_fn = jax.jit(evaluate, in_shardings=(st,), out_shardings=seeds)
+    return init_fn, epoch_fn, eval_fn, lambda ts: jax.device_put(ts, st)
