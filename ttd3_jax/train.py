@@ -472,15 +472,36 @@ def _eval_brax(c: TrainConfig, spec: EnvSpec, nets: Networks, actor, obs_stats) 
     env = spec.env
     s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(12345), c.eval_episodes))
 
-    def body(carry, _):
-        s, ret, alive = carry
+    def body(carry):
+        t, s, ret, alive = carry
         s = jax.vmap(env.step)(s, nets.actor.apply(actor, nrm.apply(obs_stats, s.obs)))
-        ret = ret + alive * s.reward
-        return (s, ret, alive * (1.0 - s.done)), None
+        # where, not alive * reward: a finished episode keeps stepping and its physics may
+        # blow up (MJX inverted_double_pendulum does), and 0 * nan is nan
+        ret = ret + jnp.where(alive > 0, s.reward, 0.0)
+        return t + 1, s, ret, alive * (1.0 - s.done)
+
+    def running(carry):  # stop early once every episode has ended (falls end them early)
+        t, _, _, alive = carry
+        return (t < c.episode_length) & jnp.any(alive > 0)
 
     ones = jnp.ones(c.eval_episodes)
-    (_, ret, _), _ = jax.lax.scan(body, (s, 0.0 * ones, ones), None, c.episode_length)
+    _, _, ret, _ = jax.lax.while_loop(running, body, (jnp.zeros((), jnp.int32), s, 0.0 * ones, ones))
     return {"eval_return": jnp.mean(ret)}
+
+
+def initial_actor(t: Trainer, key: jax.Array) -> dict:
+    """The actor parameters ``t.init(key, hp)`` starts from, without the warm-up (which
+    leaves them unchanged): the policy evaluated at step 0 of a run."""
+    k_net = jax.random.split(key, 4)[0]  # as in make_trainer's _init
+    return init_params(t.nets, k_net, t.spec.obs_size, t.spec.action_size)[0]
+
+
+def evaluate_actor(t: Trainer, actor, obs_stats: nrm.ObsStats | None = None) -> dict:
+    """``t.evaluate`` for bare actor parameters (``obs_stats``: the run's normaliser, if any)."""
+    c = t.config
+    if c.env == QUADROTOR:
+        return _eval_quad(c, t.nets, actor, obs_stats)
+    return _eval_brax(c, t.spec, t.nets, actor, obs_stats)
 
 
 def seed_keys(c: TrainConfig) -> jax.Array:
