@@ -15,6 +15,13 @@ Cases (quadrotor, ``fast`` preset unless stated):
   envs256_utd16   256 envs x 16 updates: collection-heavy
   net256          256-256 networks (the paper's width)
   seeds4          4 seeds vmapped in one program (per-seed figures are the total / 4)
+
+``--large`` (for a GPU) replaces the CPU study with thousands of envs:
+  fast                    the preset as above (the reference)
+  envs1024_b1024          1024 envs x 16 updates, batch 1024
+  envs4096_b4096          4096 envs x 16 updates, batch 4096
+  envs4096_b4096_net256   the same with 256-256 networks
+  seeds16                 16 seeds of the preset vmapped in one program
 """
 
 from __future__ import annotations
@@ -29,6 +36,22 @@ import time
 import jax
 
 from ttd3_jax.train import make_trainer, preset, seed_keys
+
+
+def large_cases() -> dict:
+    base = dict(epochs=1, warmup_transitions=8_192, buffer_size=1_048_576)
+
+    def cfg(num_envs=64, vsteps=500, **kw):
+        return preset("fast", **{**base, "num_envs": num_envs, "total_transitions": base["warmup_transitions"]
+                                 + num_envs * vsteps, **kw})  # fmt: skip
+
+    return {
+        "fast": (cfg(), False),
+        "envs1024_b1024": (cfg(num_envs=1024, batch_size=1024, vsteps=200), False),
+        "envs4096_b4096": (cfg(num_envs=4096, batch_size=4096, vsteps=100), False),
+        "envs4096_b4096_net256": (cfg(num_envs=4096, batch_size=4096, vsteps=100, hidden=(256, 256)), False),
+        "seeds16": (cfg(num_seeds=16, buffer_size=262_144), True),
+    }
 
 
 def cases(quick: bool) -> dict:
@@ -74,6 +97,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="tiny sizes, to keep the script alive in CI")
+    ap.add_argument("--large", action="store_true", help="thousands of envs (a GPU study)")
     ap.add_argument("--out", default="benchmarks/results/trainer_throughput.jsonl")
     args = ap.parse_args(argv)
     if args.repeats < 1:
@@ -82,7 +106,7 @@ def main(argv=None):
         args.repeats = 1
 
     built = {}
-    for name, (c, vmapped) in cases(args.quick).items():
+    for name, (c, vmapped) in (large_cases() if args.large else cases(args.quick)).items():
         built[name] = (c, *build(c, vmapped))
     best = {name: float("inf") for name in built}
     for _ in range(args.repeats):
@@ -94,7 +118,7 @@ def main(argv=None):
     dev = jax.devices()[0]
     print(f"device={dev.platform} ({dev.device_kind}) cpus={os.cpu_count()} jax={jax.__version__}")
     print(
-        f"{'case':<14} {'envs':>5} {'UTD':>4} {'hidden':>8} {'seeds':>5} {'compile s':>9} {'run s':>7} "
+        f"{'case':<22} {'envs':>5} {'UTD':>4} {'hidden':>8} {'seeds':>5} {'compile s':>9} {'run s':>7} "
         f"{'trans/s':>9} {'upd/s':>8} {'x fast':>6}"
     )
     fc = built["fast"][0]
@@ -117,7 +141,7 @@ def main(argv=None):
         row["updates_per_s_vs_fast"] = row["updates_per_s"] / fast_upd
         rows.append(row)
         print(
-            f"{name:<14} {c.num_envs:>5} {c.updates_per_step:>4} {'-'.join(map(str, c.hidden)):>8} "
+            f"{name:<22} {c.num_envs:>5} {c.updates_per_step:>4} {'-'.join(map(str, c.hidden)):>8} "
             f"{c.num_seeds:>5} {comp:>9.1f} {best[name]:>7.2f} {row['transitions_per_s']:>9.3g} "
             f"{row['updates_per_s']:>8.3g} {row['updates_per_s_vs_fast']:>6.2f}"
         )
@@ -128,6 +152,7 @@ def main(argv=None):
         device=dev.device_kind,
         jax=jax.__version__,
         quick=args.quick,
+        large=args.large,
         rows=rows,
     )
     if args.out:
