@@ -296,29 +296,102 @@ def reading(summary: list[dict]) -> list[str]:
     return lines
 
 
+def budgets(out: str) -> list[dict]:
+    """Per task and algorithm, the budget its run was trained with (from its config.json),
+    and whether that is the paper's protocol (spec §2.7: 1M steps, 1 env, 1 update per
+    step, 25k warm-up, evaluation every 5000 steps over 10 episodes, 3 seeds)."""
+    from ttd3_jax.runner import load_config
+    from ttd3_jax.train import total_epochs_transitions
+
+    rows = []
+    for task in TASKS:
+        for algo in ALGOS:
+            d = run_dir_of(out, task, algo)
+            if d is None:
+                continue
+            c = load_config(d)
+            b = dict(
+                task=task,
+                algo=algo,
+                steps=total_epochs_transitions(c),
+                seeds=c.num_seeds,
+                num_envs=c.num_envs,
+                updates_per_step=c.updates_per_step,
+                warmup=c.warmup_transitions,
+                eval_every=c.steps_per_epoch * c.num_envs,
+                eval_episodes=c.eval_episodes,
+                backend=c.backend,
+                finished=os.path.exists(os.path.join(d, "eval.json")),
+            )
+            b["protocol"] = (
+                b["steps"] >= PROTOCOL_STEPS and c.num_envs == 1 and c.updates_per_step == 1
+                and c.warmup_transitions == 25_000 and b["eval_every"] == 5000
+                and c.eval_episodes == 10 and c.num_seeds >= 3
+            )  # fmt: skip
+            rows.append(b)
+    return rows
+
+
+def budget_markdown(rows: list[dict]) -> str:
+    lines = [
+        "| task | algo | env steps per seed | seeds | envs x updates per vector step | warm-up "
+        "| eval every (episodes) | backend | finished | paper's protocol |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | --- | --- | --- |",
+    ]
+    for b in rows:
+        lines.append(
+            f"| {b['task']} | {LABEL[b['algo']]} | {b['steps']} | {b['seeds']} | "
+            f"{b['num_envs']} x {b['updates_per_step']} | {b['warmup']} | {b['eval_every']} "
+            f"({b['eval_episodes']}) | {b['backend']} | {'yes' if b['finished'] else 'no'} | "
+            f"{'yes' if b['protocol'] else '**no: reduced**'} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def write_readme(a: argparse.Namespace, summary: list[dict], wall_s: float) -> None:
+    """README.md of ``a.out``: each task's budget (read from its run, so invocations with
+    different budgets into one folder are described correctly), the device, the last
+    command, the summary and a generated reading."""
     import jax
 
-    reduced = a.steps < PROTOCOL_STEPS or a.num_envs != 1 or a.seeds < 3
+    rows = budgets(a.out)
+    reduced = not rows or not all(b["protocol"] for b in rows)
     dev = jax.devices()[0]
-    with open(os.path.join(a.out, "README.md"), "w") as fh:
+    readme = os.path.join(a.out, "README.md")
+    log = os.path.join(a.out, "commands.txt")
+    if not a.report_only:
+        with open(log, "a") as fh:  # every invocation that trained, in order
+            fh.write(f"{datetime.date.today().isoformat()}  {a.command}\n")
+    commands = open(log).read().strip().splitlines() if os.path.exists(log) else [a.command]
+    with open(readme, "w") as fh:
         fh.write("# T-TD3 vs TD3 on Brax/MJX MuJoCo tasks\n\n")
         fh.write(
-            ("**Reduced run, not the paper's protocol** " if reduced else "The paper's protocol ")
-            + f"(spec §2.7: 1M steps, 1 env, 1 update per step): {a.steps} steps, {a.seeds} seeds, "
-            f"{a.num_envs} env(s) x {a.updates_per_step or a.num_envs} update(s) per vector step, "
-            f"evaluation every {a.eval_every} steps over {a.eval_episodes} deterministic episodes, "
-            f"backend {a.backend}.\n\n"
+            "**Reduced runs, not the paper's protocol.** "
+            if reduced
+            else "All runs follow the paper's protocol. "
         )
         fh.write(
-            f"- command: `{a.command}`\n- device: {dev.platform} {dev.device_kind}"
-            f"{' (' + a.device_note + ')' if a.device_note else ''}\n"
-            f"- date: {datetime.date.today().isoformat()}\n- wall time of this invocation: {wall_s:.0f} s\n\n"
+            "The protocol (spec §2.7) is 1M env steps per seed, 1 env, 1 update per step, a 25k "
+            "warm-up and an evaluation every 5000 steps over 10 deterministic episodes. "
+            "Each run's own budget:\n\n"
         )
+        fh.write(budget_markdown(rows) + "\n")
+        note = f" ({a.device_note})" if a.device_note else ""
+        fh.write(f"- device: {dev.platform} {dev.device_kind}{note}\n")
+        fh.write("- commands (each trains the tasks it names; finished tasks are skipped):\n")
+        fh.writelines(f"  - `{c}`\n" for c in commands)
+        fh.write(f"- wall time of the last invocation: {wall_s:.0f} s\n\n")
         fh.write("Curves: `curves.png` (mean ± ½ std over seeds). Every evaluation: `evals.csv`.\n\n")
         fh.write(summary_markdown(summary))
         fh.write("\nReading (generated; AUC is the mean return over all evaluations):\n\n")
         fh.write("\n".join(reading(summary)) + "\n")
+
+
+def jax_device() -> str:
+    import jax
+
+    d = jax.devices()[0]
+    return f"{d.platform} {d.device_kind}"
 
 
 def report(a: argparse.Namespace, wall_s: float) -> list[dict]:
@@ -329,9 +402,14 @@ def report(a: argparse.Namespace, wall_s: float) -> list[dict]:
     write_evals(rows, a.out)
     summary = summarize(rows)
     write_summary(summary, a.out)
-    plot_curves(
-        rows, os.path.join(a.out, "curves.png"), title=f"{a.steps} steps, {a.seeds} seeds, {a.backend}"
+    budget = budgets(a.out)
+    protocol = bool(budget) and all(b["protocol"] for b in budget)
+    seeds = sorted({b["seeds"] for b in budget})
+    title = (
+        f"{'paper protocol' if protocol else 'reduced budget (README.md)'}, "
+        f"{'/'.join(map(str, seeds))} seeds, {a.backend}, {jax_device()}"
     )
+    plot_curves(rows, os.path.join(a.out, "curves.png"), title=title)
     write_readme(a, summary, wall_s)
     print(summary_markdown(summary))
     print("\n".join(reading(summary)))

@@ -1,0 +1,115 @@
+"""experiments/mujoco_compare.py without training (MJX compiles take minutes on a CPU): the
+configs and their errors, the summary statistics, the per-run budgets and the README, on
+synthetic run directories."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import importlib.util
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+
+from ttd3_jax.runner import config_to_dict
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+spec = importlib.util.spec_from_file_location(
+    "mujoco_compare", os.path.join(HERE, "..", "experiments", "mujoco_compare.py")
+)
+mc = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(mc)
+
+
+def test_task_config_is_the_mujoco_preset_resized():
+    a = mc.parse(["--steps", "40000", "--warmup", "5000", "--eval-every", "2500", "--tasks", "hopper"])
+    c = mc.task_config("hopper", "td3", a)
+    assert (c.env, c.algo, c.num_envs, c.updates_per_step, c.num_seeds) == ("hopper", "td3", 1, 1, 3)
+    assert c.epochs == 14 and c.steps_per_epoch == 2500 and c.warmup_transitions == 5000
+    t = mc.task_config("hopper", "ttd3", a)
+    assert t.algo == "ttd3" and t.hp == c.hp and t.hidden == c.hidden == (256, 256)
+
+
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["--steps", "4000", "--warmup", "5000"], "at least one evaluation interval"),
+        (["--eval-every", "1001", "--num-envs", "2"], "multiple of --num-envs"),
+    ],
+)
+def test_task_config_errors_name_the_option(argv, match):
+    with pytest.raises(ValueError, match=match):
+        mc.task_config("hopper", "ttd3", mc.parse(argv))
+
+
+@pytest.mark.parametrize("argv", [["--seeds", "0"], ["--warmup", "10"], ["--tasks", "humanoid"]])
+def test_parse_rejects_bad_values(argv, capsys):
+    with pytest.raises(SystemExit):
+        mc.parse(argv)
+    assert "error" in capsys.readouterr().err
+
+
+def rows_for(task, algo, finals, steps=(5000, 10000, 15000)):
+    return [
+        dict(task=task, algo=algo, seed=s, step=t, eval_return=f * t / steps[-1])
+        for s, f in enumerate(finals)
+        for t in steps
+    ]
+
+
+def test_summary_statistics():
+    rows = rows_for("hopper", "td3", [100.0, 200.0]) + rows_for("hopper", "ttd3", [300.0, 300.0])
+    by = {r["algo"]: r for r in mc.summarize(rows)}
+    assert by["td3"]["final_mean"] == pytest.approx(150.0) and by["td3"]["final_std"] == pytest.approx(50.0)
+    # seed-mean curves: td3 50, 100, 150; ttd3 100, 200, 300 at 5k, 10k, 15k steps
+    assert by["td3"]["auc"] == pytest.approx(100.0) and by["ttd3"]["auc"] == pytest.approx(200.0)
+    # 80 % of TD3's final (120): TD3 first reaches it at 15k, T-TD3 at 10k
+    assert by["td3"]["steps_to_80pct_td3"] == 15000 and by["ttd3"]["steps_to_80pct_td3"] == 10000
+    lines = mc.reading(mc.summarize(rows))
+    assert len(lines) == 1 and "T-TD3 ahead" in lines[0] and "slightly worse" in lines[0]
+    assert math.isnan(mc.steps_to(np.array([1, 2]), np.array([0.0, 1.0]), 5.0))
+
+
+def fake_run(out, task, algo, argv):
+    """A run directory as the runner writes it: config.json, metrics.csv, eval.json."""
+    a = mc.parse(argv)
+    c = mc.task_config(task, algo, a)
+    d = os.path.join(out, "runs", f"{task}-{algo}", f"{task}-{algo}-s0-20261201-000000")
+    os.makedirs(d)
+    with open(os.path.join(d, "config.json"), "w") as fh:
+        json.dump(config_to_dict(c), fh)
+    with open(os.path.join(d, "metrics.csv"), "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["epoch", "seed", "env_steps", "eval_return"])
+        for e in range(1, c.epochs + 1):
+            for s in range(c.num_seeds):
+                w.writerow([e, s, c.warmup_transitions + e * a.eval_every, 10.0 * e + s])
+    with open(os.path.join(d, "eval.json"), "w") as fh:
+        json.dump({}, fh)
+    return a
+
+
+def test_readme_states_each_runs_budget_and_flags_reduced_runs(tmp_path):
+    out = str(tmp_path)
+    small = ["--steps", "40000", "--warmup", "5000", "--eval-every", "2500", "--out", out]
+    for algo in ("ttd3", "td3"):
+        fake_run(out, "hopper", algo, small + ["--tasks", "hopper"])
+        a = fake_run(out, "ant", algo, ["--steps", "15000", "--warmup", "5000", "--out", out, "--tasks", "ant"])
+    b = {(r["task"], r["algo"]): r for r in mc.budgets(out)}
+    assert b["hopper", "td3"]["steps"] == 40000 and b["hopper", "td3"]["eval_every"] == 2500
+    assert b["ant", "ttd3"]["steps"] == 15000 and b["ant", "ttd3"]["eval_every"] == 5000
+    assert not any(r["protocol"] for r in b.values())
+    a.report_only = False
+    a.device_note = "test machine"
+    summary = mc.report(a, wall_s=1.0)
+    assert {s["task"] for s in summary} == {"hopper", "ant"}
+    text = open(os.path.join(out, "README.md")).read()
+    assert "**Reduced runs, not the paper's protocol.**" in text
+    assert "| hopper | TD3 | 40000 | 3 | 1 x 1 | 5000 | 2500 (10) | mjx | yes | **no: reduced** |" in text
+    assert "| ant | T-TD3 | 15000 |" in text and "test machine" in text
+    assert os.path.getsize(os.path.join(out, "curves.png")) > 10_000
+    with open(os.path.join(out, "evals.csv")) as fh:
+        assert len(list(csv.DictReader(fh))) == 2 * 3 * (14 + 2)  # algos x seeds x evaluations
