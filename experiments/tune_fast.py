@@ -20,6 +20,7 @@ import statistics
 from ttd3_jax import train as T
 from ttd3_jax.env import make_config
 from ttd3_jax.runner import read_metrics, run
+from ttd3_jax.trajectories import TrackConfig
 
 # name: (env overrides, TrainConfig overrides, Hyper overrides)
 VARIANTS = {
@@ -43,6 +44,20 @@ VARIANTS = {
         {"batch_size": 1024, "updates_per_step": 8},
         {"lr_actor": 1e-3, "lr_critic": 1e-3},
     ),  # fmt: skip
+    "slow_tracks": ({"tracks": TrackConfig(train_scale=(0.05, 1.0))}, {}, {}),
+    "slow_tracks_small_init": (
+        {
+            "tracks": TrackConfig(train_scale=(0.05, 1.0)),
+            "init_pos": 0.03,
+            "init_vel": 0.05,
+            "init_tilt_deg": 3.0,
+            "init_yaw_deg": 5.0,
+        },
+        {},
+        {},
+    ),  # fmt: skip
+    "cubic_rates": ({"rate_map": "cubic"}, {}, {}),
+    "cubic_rates_0.25": ({"rate_map": "cubic", "rate_map_slope": 0.25}, {}, {}),
     "utd_1": ({}, {"num_envs": 16, "total_transitions": 300_000, "buffer_size": 300_000}, {}),
     "lr_linear_900k": (
         {},

@@ -204,6 +204,23 @@ def test_action_map_hover_and_inverse():
     np.testing.assert_allclose(hover_action(mn)[0], -0.019, atol=1e-3)
 
 
+@pytest.mark.parametrize("slope", [0.1, 0.25])
+def test_cubic_rate_map_keeps_bounds_and_refines_near_zero(slope):
+    """rate_map="cubic": the same ±6 rad/s at a = ±1, slope α·6 rad/s per unit at 0 (1/α
+    finer), monotone, and control_to_action inverts it."""
+    cfg = make_config(rate_map="cubic", rate_map_slope=slope)
+    np.testing.assert_allclose(action_to_control(cfg, jnp.array([0.0, -1, 0, 1]))[1:], [-6, 0, 6], rtol=1e-6)
+    da = 1e-3
+    w = action_to_control(cfg, jnp.array([0.0, da, -da, 0.5]))[1:]
+    np.testing.assert_allclose(w[:2], [6 * slope * da, -6 * slope * da], rtol=1e-3)
+    np.testing.assert_allclose(w[2], 6 * (slope * 0.5 + (1 - slope) * 0.125), rtol=1e-6)
+    grid = jnp.linspace(-1, 1, 201)
+    rates = action_to_control(cfg, jnp.stack([jnp.zeros_like(grid)] + [grid] * 3, -1))[:, 1]
+    assert np.all(np.diff(np.asarray(rates)) > 0)
+    a = jax.random.uniform(jax.random.PRNGKey(1), (100, 4), minval=-1, maxval=1)
+    np.testing.assert_allclose(control_to_action(cfg, action_to_control(cfg, a)), a, atol=2e-5)
+
+
 def test_hover_action_holds_position_in_env():
     env = spiral_env()
     s = env.reset(jax.random.PRNGKey(0))
@@ -303,6 +320,9 @@ def test_geometric_controller_tracks_both_test_tracks():
         (dict(wind_sigma=-0.1), "wind_sigma"),
         (dict(effort_weights=(1, 1, 1)), "effort_weights"),
         (dict(lookahead_k=1.5), "lookahead_k"),
+        (dict(rate_map="quadratic"), "rate_map"),
+        (dict(rate_map="cubic", rate_map_slope=0.0), "rate_map_slope"),
+        (dict(rate_map="cubic", rate_map_slope=1.5), "rate_map_slope"),
     ],
 )
 def test_config_validation(kwargs, match):

@@ -4,7 +4,6 @@ synthetic run directories."""
 
 from __future__ import annotations
 
-import argparse
 import csv
 import importlib.util
 import json
@@ -97,7 +96,8 @@ def test_readme_states_each_runs_budget_and_flags_reduced_runs(tmp_path):
     small = ["--steps", "40000", "--warmup", "5000", "--eval-every", "2500", "--out", out]
     for algo in ("ttd3", "td3"):
         fake_run(out, "hopper", algo, small + ["--tasks", "hopper"])
-        a = fake_run(out, "ant", algo, ["--steps", "15000", "--warmup", "5000", "--out", out, "--tasks", "ant"])
+        ant = ["--steps", "15000", "--warmup", "5000", "--out", out, "--tasks", "ant"]
+        a = fake_run(out, "ant", algo, ant)
     b = {(r["task"], r["algo"]): r for r in mc.budgets(out)}
     assert b["hopper", "td3"]["steps"] == 40000 and b["hopper", "td3"]["eval_every"] == 2500
     assert b["ant", "ttd3"]["steps"] == 15000 and b["ant", "ttd3"]["eval_every"] == 5000

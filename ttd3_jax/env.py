@@ -46,6 +46,7 @@ TRACK_MODES = ("train", "validation", "spiral_rt", "los_rt")
 ERR_REFS = ("current", "next")
 ERR_COSTS = ("paper", "squared")
 OBS_FRAMES = ("world", "track")
+RATE_MAPS = ("linear", "cubic")
 PRESETS = ("paper", "practical")
 
 
@@ -71,6 +72,8 @@ class EnvConfig:
     lookahead_k: int = 1  # physics steps ahead for the observed reference point
     obs_frame: str = "world"  # "track": positions relative to p_d,k (translation invariant)
     hover_centered_thrust: bool = False  # a0 = 0 means hover thrust
+    rate_map: str = "linear"  # "cubic": a -> α a + (1 − α) a³ before the rate map (not in the paper)
+    rate_map_slope: float = 0.1  # α, the cubic map's slope at a = 0 (1 = linear)
     # reward and termination (R1-R4)
     err_cost: str = "paper"
     rho1: float = 1.0
@@ -147,6 +150,9 @@ class EnvConfig:
         one_of("err_ref", ERR_REFS)
         one_of("err_cost", ERR_COSTS)
         one_of("obs_frame", OBS_FRAMES)
+        one_of("rate_map", RATE_MAPS)
+        if not (isinstance(self.rate_map_slope, (int, float)) and 0 < self.rate_map_slope <= 1):
+            raise ValueError(f"EnvConfig.rate_map_slope must be in (0, 1], got {self.rate_map_slope!r}")
         one_of("track", TRACK_MODES)
         if self.episode_steps % self.action_repeat:
             raise ValueError(
@@ -239,6 +245,8 @@ def action_to_control(cfg: EnvConfig, a: jax.Array) -> jax.Array:
 
     Default: thrust = f_min + (a0 + 1)/2 (f_max - f_min); rates affine onto
     [rate_min, rate_max].  ``hover_centered_thrust`` maps a0 = 0 to the hover thrust.
+    ``rate_map="cubic"`` first sends each rate action a to α a + (1 − α) a³ (odd, monotone,
+    [-1, 1] onto itself): the same bounds with 1/α times finer resolution near a = 0.
     """
     lo, hi, hover = _thrust_range(cfg)
     a0 = a[..., 0]
@@ -247,8 +255,25 @@ def action_to_control(cfg: EnvConfig, a: jax.Array) -> jax.Array:
     else:
         f = lo + 0.5 * (a0 + 1.0) * (hi - lo)
     rlo, rhi = cfg.quad.rate_min, cfg.quad.rate_max
-    w = rlo + 0.5 * (a[..., 1:] + 1.0) * (rhi - rlo)
+    w = rlo + 0.5 * (_shape_rates(cfg, a[..., 1:]) + 1.0) * (rhi - rlo)
     return jnp.concatenate([f[..., None], w], -1)
+
+
+def _shape_rates(cfg: EnvConfig, a: jax.Array) -> jax.Array:
+    if cfg.rate_map == "linear":
+        return a
+    k = cfg.rate_map_slope
+    return k * a + (1.0 - k) * a * a * a
+
+
+def _unshape_rates(cfg: EnvConfig, y: jax.Array) -> jax.Array:
+    """Inverse of :func:`_shape_rates`: the real root of (1 − α) a³ + α a = y (Cardano)."""
+    if cfg.rate_map == "linear" or cfg.rate_map_slope == 1.0:
+        return y
+    k = cfg.rate_map_slope
+    p, q = k / (1.0 - k), -y / (1.0 - k)
+    r = jnp.sqrt(q * q / 4.0 + p**3 / 27.0)
+    return jnp.cbrt(-q / 2.0 + r) + jnp.cbrt(-q / 2.0 - r)
 
 
 def control_to_action(cfg: EnvConfig, u: jax.Array) -> jax.Array:
@@ -260,7 +285,7 @@ def control_to_action(cfg: EnvConfig, u: jax.Array) -> jax.Array:
     else:
         a0 = 2.0 * (f - lo) / (hi - lo) - 1.0
     rlo, rhi = cfg.quad.rate_min, cfg.quad.rate_max
-    aw = 2.0 * (u[..., 1:] - rlo) / (rhi - rlo) - 1.0
+    aw = _unshape_rates(cfg, 2.0 * (u[..., 1:] - rlo) / (rhi - rlo) - 1.0)
     return jnp.concatenate([a0[..., None], aw], -1)
 
 

@@ -36,6 +36,7 @@ LOS_HEADINGS = ("absolute", "cumulative")
 # produce a test instance (see docs/paper-notes.md, T8).
 _TRAIN_TAG = 0x7EA1
 _VALIDATION_TAG = 0x5A11
+_SCALE_TAG = 0x5CA1
 NUM_VALIDATION_TRACKS = 10
 
 # Training-mixture ranges (spec §2.3).
@@ -73,6 +74,10 @@ class TrackConfig:
     los_init_point: tuple[float, float, float] = (0.1, 0.1, 0.1)  # m
     los_climb_rate: float = 0.1  # m/s (1e-4 m per 1 ms step)
     train_mix: tuple[float, float, float] = (0.5, 0.25, 0.25)  # (dynamics, spiral, LOS) weights
+    # each training track is scaled in space by s ~ log-U(lo, hi) (positions, speeds and
+    # accelerations times s; not in the paper): (1, 1) is the mixture as specified, a low
+    # ``lo`` adds slow, small tracks such as Spiral-RT's 0.15 m/s
+    train_scale: tuple[float, float] = (1.0, 1.0)
 
     def __post_init__(self):
         if not (math.isfinite(self.spiral_time_scale) and self.spiral_time_scale > 0):
@@ -88,6 +93,9 @@ class TrackConfig:
             raise ValueError(f"los_segment_steps must be an integer >= 1, got {self.los_segment_steps}")
         if self.los_heading not in LOS_HEADINGS:
             raise ValueError(f"los_heading must be one of {LOS_HEADINGS}, got {self.los_heading!r}")
+        sc = self.train_scale
+        if len(sc) != 2 or not all(map(math.isfinite, sc)) or not 0 < sc[0] <= sc[1]:
+            raise ValueError(f"train_scale must be two finite numbers 0 < min <= max, got {sc}")
         w = self.train_mix
         if len(w) != 3 or not all(map(math.isfinite, w)) or any(x < 0 for x in w) or sum(w) <= 0:
             raise ValueError(
@@ -434,7 +442,18 @@ def sample_train_track(
     w = jnp.cumsum(jnp.asarray(cfg.train_mix, u.dtype))
     cat = jnp.sum(u_cat[0] * w[-1] >= w[:2])  # 0, 1 or 2 with probabilities ∝ train_mix
     candidates = (_train_dynamics(u_dyn, n, dt), _train_spiral(u_sp, n), _train_los(u_los, n, dt, cfg))
-    return jax.tree.map(lambda a, b, c: jnp.select([cat == 0, cat == 1], [a, b], c), *candidates)
+    track = jax.tree.map(lambda a, b, c: jnp.select([cat == 0, cat == 1], [a, b], c), *candidates)
+    if tuple(cfg.train_scale) == (1.0, 1.0):
+        return track  # as specified; no extra draw, so the default mixture is unchanged
+    lo, hi = (math.log(x) for x in cfg.train_scale)
+    u_s = jax.random.uniform(jax.random.fold_in(key, _SCALE_TAG), (), u.dtype)
+    return scale_track(track, jnp.exp(_uniform(u_s, lo, hi)))
+
+
+def scale_track(track: Track, s: jax.Array) -> Track:
+    """The track scaled in space by ``s`` about the origin (p -> s p; speeds and
+    accelerations scale by s too; the timing is unchanged)."""
+    return track.replace(gain=track.gain * s, climb=track.climb * s, seg=track.seg * s)
 
 
 def validation_tracks(
