@@ -391,3 +391,44 @@ def test_track_frame_observation_is_translation_invariant():
     np.testing.assert_allclose(o1[13:], ow[13:], atol=1e-6)
     with pytest.raises(ValueError, match="obs_frame"):
         make_config("paper", obs_frame="body")
+
+
+def test_heading_frame_observation_is_yaw_invariant():
+    """obs_frame="heading": rotating the whole scene (vehicle and track) about z leaves the
+    observation unchanged; it is the track-frame observation turned by -yaw, with the same
+    error scalar and a unit attitude quaternion whose yaw part is removed."""
+    from ttd3_jax.dynamics import quat_from_axis_angle, quat_mul
+
+    cfg = make_config("practical", obs_frame="heading").for_eval("los_rt")
+    env = TrackingEnv(cfg)
+    ps = env.reset(jax.random.PRNGKey(0)).pipeline_state
+    tilt = quat_from_axis_angle(jnp.array([0.6, 0.8, 0.0]), 0.3)
+    quad = ps.quad.replace(p=jnp.array([0.4, -0.1, 0.2]), v=jnp.array([1.0, 0.5, -0.2]), q=tilt)
+    ps = ps.replace(k=jnp.asarray(500, jnp.int32), quad=quad)
+    o1, _ = env.observe(ps)
+    for alpha in (0.7, -2.0, 3.1):
+        c, s = math.cos(alpha), math.sin(alpha)
+        rz = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        turned = ps.replace(
+            quad=quad.replace(
+                p=rz @ quad.p,
+                v=rz @ quad.v,
+                q=quat_mul(quat_from_axis_angle(jnp.array([0, 0, 1.0]), alpha), tilt),
+            ),
+            track=ps.track.replace(seg=ps.track.seg @ rz.T),
+        )
+        o2, _ = env.observe(turned)
+        np.testing.assert_allclose(o1, o2, atol=2e-5)
+        ot, _ = TrackingEnv(dataclasses.replace(cfg, obs_frame="track")).observe(turned)
+        assert np.abs(np.asarray(ot[0:3] - o2[0:3])).max() > 0.05  # the track frame is not yaw invariant
+        np.testing.assert_allclose(np.linalg.norm(o2[0:3]), np.linalg.norm(ot[0:3]), rtol=1e-5)
+        np.testing.assert_allclose(o2[16], ot[16], rtol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(o1[6:10]), 1.0, atol=1e-6)
+    assert o1[6] >= 0
+
+
+def test_heading_frame_refuses_classical_controllers():
+    from ttd3_jax.evaluate import sensed_controller
+
+    with pytest.raises(ValueError, match="heading"):
+        sensed_controller(geometric_controller(make_config()), make_config("practical", obs_frame="heading"))

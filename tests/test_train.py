@@ -395,3 +395,32 @@ def test_run_refuses_to_load_when_the_env_config_changed(tmp_path):
     path.write_text(json.dumps(saved))
     with pytest.raises(ValueError, match="e_max"):
         load_config(str(run_dir))
+
+
+def test_caps_terms_are_compiled_in_only_when_the_config_sets_them():
+    """losses.actor_loss: caps=False is exactly -mean Q1; caps=True with zero weights gives
+    the same value, with non-zero weights it adds the smoothness penalties.  The trainer's
+    static switch follows the config's own hp."""
+    from ttd3_jax.losses import actor_loss
+    from ttd3_jax.networks import init_params, make_networks
+    from ttd3_jax.train import uses_caps
+
+    nets = make_networks(4, (16, 16))
+    actor, critic = init_params(nets, jax.random.PRNGKey(0), 17, 4)
+    k = jax.random.split(jax.random.PRNGKey(1), 3)
+    batch = rb.Transition(
+        obs=jax.random.normal(k[0], (32, 17)),
+        action=jnp.zeros((32, 4)),
+        reward=jnp.zeros(32),
+        next_obs=jax.random.normal(k[1], (32, 17)),
+        terminated=jnp.zeros(32),
+    )
+    plain = float(actor_loss(actor, nets, critic, batch, k[2], Hyper(), caps=False))
+    assert float(actor_loss(actor, nets, critic, batch, k[2], Hyper(), caps=True)) == pytest.approx(
+        plain, abs=1e-6
+    )
+    hp = Hyper(smooth_time=1.0, smooth_space=1.0, smooth_sigma=0.5)
+    assert float(actor_loss(actor, nets, critic, batch, k[2], hp, caps=True)) > plain + 1e-4
+    assert not uses_caps(preset("fast"))
+    assert uses_caps(preset("fast", hp=Hyper(smooth_time=0.5)))
+    assert uses_caps(preset("fast", hp=Hyper(smooth_space=0.3)))

@@ -45,7 +45,7 @@ from ttd3_jax.dynamics import QuadParams, QuadState, quat_from_axis_angle, quat_
 TRACK_MODES = ("train", "validation", "spiral_rt", "los_rt")
 ERR_REFS = ("current", "next")
 ERR_COSTS = ("paper", "squared")
-OBS_FRAMES = ("world", "track")
+OBS_FRAMES = ("world", "track", "heading")
 RATE_MAPS = ("linear", "cubic")
 PRESETS = ("paper", "practical")
 
@@ -70,7 +70,8 @@ class EnvConfig:
     # observation and action (O1, O2)
     err_ref: str = "current"
     lookahead_k: int = 1  # physics steps ahead for the observed reference point
-    obs_frame: str = "world"  # "track": positions relative to p_d,k (translation invariant)
+    obs_frame: str = "world"  # "track": positions relative to p_d,k (translation invariant);
+    #   "heading": "track", then vectors and q in the vehicle's heading frame (yaw invariant)
     hover_centered_thrust: bool = False  # a0 = 0 means hover thrust
     rate_map: str = "linear"  # "cubic": a -> α a + (1 − α) a³ before the rate map (not in the paper)
     rate_map_slope: float = 0.1  # α, the cubic map's slope at a = 0 (1 = linear)
@@ -534,12 +535,38 @@ class TrackingEnv(Env):
         if c.obs_frame == "track":  # same 17 numbers with the origin moved to p_d,k
             p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
             parts = [p - p_now, v, q, p_ahead - p_now, p_ahead - p, err[None]]
+        elif c.obs_frame == "heading":  # "track", then turned by -yaw about z
+            p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
+            turn, q_h = _remove_yaw(q)
+            q_h = jnp.where(q_h[0] < 0, -q_h, q_h) if c.canonical_q_obs else q_h
+            vecs = (p - p_now, v, p_ahead - p_now, p_ahead - p)
+            parts = [turn(vecs[0]), turn(vecs[1]), q_h, turn(vecs[2]), turn(vecs[3]), err[None]]
         else:
             parts = [p, v, q, p_ahead, p_ahead - p, err[None]]
         if self._rates_in_obs:
             parts.append(x.w)
         obs = jnp.concatenate(parts)
         return jnp.where(jnp.isfinite(obs), obs, 0.0), ps
+
+
+def yaw_of(q: jax.Array) -> jax.Array:
+    """Yaw ψ (rad) of the scalar-first unit quaternion ``q`` (z-y-x Euler angles)."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return jnp.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def _remove_yaw(q: jax.Array):
+    """``(turn, q_h)``: ``turn(x)`` rotates a world vector by −ψ about z (into the heading
+    frame) and ``q_h = q_z(−ψ) ⊗ q`` is the attitude with its yaw removed (tilt only)."""
+    psi = yaw_of(q)
+    cs, sn = jnp.cos(psi), jnp.sin(psi)
+
+    def turn(x):
+        return jnp.stack([cs * x[0] + sn * x[1], -sn * x[0] + cs * x[1], x[2]])
+
+    half = 0.5 * psi
+    q_unyaw = jnp.stack([jnp.cos(half), jnp.zeros_like(half), jnp.zeros_like(half), -jnp.sin(half)])
+    return turn, quat_mul(q_unyaw, q)
 
 
 def _finite(x: QuadState) -> jax.Array:

@@ -257,6 +257,11 @@ def sensed_controller(controller: Controller, cfg: EnvConfig) -> Controller:
     observed, read from ``obs``) instead of the true state, so that observation noise
     reaches classical controllers as it reaches a policy.  Without noise the two agree
     (q and −q are the same attitude; track-frame positions are shifted back)."""
+    if cfg.obs_frame == "heading":
+        raise ValueError(
+            "obs_frame='heading' drops the yaw from the observation, so a classical controller "
+            "cannot read its state from it; use obs_frame 'world' or 'track', or sensed=False"
+        )
 
     def sensed(s):
         ps, o = s.pipeline_state, s.obs

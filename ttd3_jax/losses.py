@@ -27,14 +27,18 @@ def critic_loss(critic_params, nets: Networks, target_actor, target_critic, batc
 
 
 def actor_loss(
-    actor_params, nets: Networks, critic_params, batch: Transition, key: jax.Array, hp
+    actor_params, nets: Networks, critic_params, batch: Transition, key: jax.Array, hp, caps: bool = True
 ) -> jax.Array:
     """Deterministic policy gradient objective through the first critic, plus the optional
     CAPS smoothness terms (Mysore et al. 2021): ``hp.smooth_time`` · mean ||π(s) − π(s')||²
-    and ``hp.smooth_space`` · mean ||π(s) − π(s + ``hp.smooth_sigma`` ξ)||² (off at 0)."""
+    and ``hp.smooth_space`` · mean ||π(s) − π(s + ``hp.smooth_sigma`` ξ)||².  ``caps`` is
+    static: ``False`` leaves out the two extra actor passes (plain TD3, a third of the
+    actor's work)."""
     obs = batch.obs
     a = nets.actor.apply(actor_params, obs)
     q1 = twin_q(nets, jax.tree.map(lambda p: p[:1], critic_params), obs, a)[0]
+    if not caps:
+        return -jnp.mean(q1)
     a_next = nets.actor.apply(actor_params, batch.next_obs)
     a_near = nets.actor.apply(actor_params, obs + hp.smooth_sigma * jax.random.normal(key, obs.shape))
     smooth_t = jnp.mean(jnp.sum((a - a_next) ** 2, -1))

@@ -62,7 +62,9 @@ class Hyper:
     target_sigma: float = 0.2  # σ̃, target-policy smoothing std
     target_clip: float = 0.1  # c, target-policy smoothing clip
     reward_scale: float = 1.0  # rewards are stored times this (keeps Q values O(1..100))
-    smooth_time: float = 0.0  # CAPS weight on ||π(s) − π(s')||² in the actor loss (0 = TD3)
+    # CAPS weights (0 = TD3).  The CAPS terms are compiled in only when the TrainConfig's own
+    # hp has one of them non-zero (``uses_caps``): a sweep over them starts from such a config.
+    smooth_time: float = 0.0  # CAPS weight on ||π(s) − π(s')||² in the actor loss
     smooth_space: float = 0.0  # CAPS weight on ||π(s) − π(s + smooth_sigma ξ)||²
     smooth_sigma: float = 0.05  # std of the CAPS state perturbation, in network-input units
 
@@ -223,6 +225,13 @@ def make_env(c: TrainConfig) -> EnvSpec:
     return EnvSpec(env, env.observation_size, env.action_size, c.episode_length)
 
 
+def uses_caps(c: TrainConfig) -> bool:
+    """Whether the actor loss carries the CAPS terms (static): when ``c.hp`` sets a non-zero
+    ``smooth_time`` or ``smooth_space``.  An ``hp`` passed to the trainer's functions
+    (a sweep) cannot turn them on: its values are traced."""
+    return c.hp.smooth_time != 0 or c.hp.smooth_space != 0
+
+
 def quad_env_config(c: TrainConfig):
     """The quadrotor training env's config for this run."""
     return make_config(c.env_preset, hover_centered_thrust=c.hover_centered_thrust)
@@ -344,6 +353,8 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
         ts, _ = jax.lax.scan(warm, ts, jax.random.split(k_warm, c.warmup_steps))
         return ts
 
+    caps = uses_caps(c)
+
     def _update(ts: TrainState, hp: Hyper, key: jax.Array, j: jax.Array):
         """One critic step, the σ update and, every d-th update, the actor + target step.
 
@@ -372,7 +383,7 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
         ts = ts.replace(critic=critic, critic_opt=critic_opt, noise=noise, n_upd=n_upd)
 
         def actor_step(ts):
-            a_loss, g = jax.value_and_grad(actor_loss)(ts.actor, nets, ts.critic, batch, k_smooth, hp)
+            a_loss, g = jax.value_and_grad(actor_loss)(ts.actor, nets, ts.critic, batch, k_smooth, hp, caps)
             actor_opt = _with_lr(ts.actor_opt, hp.lr_actor * frac)
             upd, actor_opt = _adam(hp.lr_actor).update(g, actor_opt, ts.actor)
             actor = optax.apply_updates(ts.actor, upd)
