@@ -15,6 +15,8 @@ Cases (quadrotor, ``fast`` preset unless stated):
   envs256_utd16   256 envs x 16 updates: collection-heavy
   net256          256-256 networks (the paper's width)
   seeds4          4 seeds vmapped in one program (per-seed figures are the total / 4)
+  fast_caps, net256_caps   fast / net256 with the CAPS actor terms compiled in: the cost
+                  of the static CAPS switch's absence (before/after of that change)
 
 ``--large`` (for a GPU) replaces the CPU study with thousands of envs:
   fast                    the preset as above (the reference)
@@ -27,6 +29,7 @@ Cases (quadrotor, ``fast`` preset unless stated):
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import os
@@ -64,12 +67,17 @@ def cases(quick: bool) -> dict:
         total = kw.pop("total", steps) + base["warmup_transitions"]
         return preset("fast", **{**base, "num_envs": num_envs, "total_transitions": total, **kw})
 
+    caps_hp = dataclasses.replace(preset("fast").hp, smooth_time=1e-12)
     out = {
         "fast": (cfg(), False),
         "fast_vmap1": (cfg(), True),
         "envs16_utd16": (cfg(num_envs=16, total=steps // 4), False),
         "envs256_utd16": (cfg(num_envs=256, total=steps * 4), False),
         "net256": (cfg(hidden=(256, 256), total=steps // 4), False),
+        # the actor loss with the CAPS terms compiled in (as every run had before the static
+        # switch; a negligible weight, so the same work as a real CAPS run)
+        "fast_caps": (cfg(hp=caps_hp), False),
+        "net256_caps": (cfg(hidden=(256, 256), total=steps // 4, hp=caps_hp), False),
         "seeds4": (cfg(num_seeds=4, total=steps // 2), True),
     }
     if quick:
@@ -98,6 +106,7 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="tiny sizes, to keep the script alive in CI")
     ap.add_argument("--large", action="store_true", help="thousands of envs (a GPU study)")
+    ap.add_argument("--only", nargs="+", default=None, help="run these cases (and fast, the reference)")
     ap.add_argument("--out", default="benchmarks/results/trainer_throughput.jsonl")
     args = ap.parse_args(argv)
     if args.repeats < 1:
@@ -106,7 +115,13 @@ def main(argv=None):
         args.repeats = 1
 
     built = {}
-    for name, (c, vmapped) in (large_cases() if args.large else cases(args.quick)).items():
+    chosen = large_cases() if args.large else cases(args.quick)
+    if args.only:
+        bad = sorted(set(args.only) - set(chosen))
+        if bad:
+            ap.error(f"unknown case(s) {bad}; allowed: {sorted(chosen)}")
+        chosen = {k: v for k, v in chosen.items() if k in args.only or k == "fast"}  # fast: the reference
+    for name, (c, vmapped) in chosen.items():
         built[name] = (c, *build(c, vmapped))
     best = {name: float("inf") for name in built}
     for _ in range(args.repeats):
