@@ -44,11 +44,11 @@ from ttd3_jax.evaluate import (
     device_description,
     energy_paper_map,
     load_run,
-    plot_traces,
     summarize,
     test_tracks,
     to_paper_map,
 )
+from ttd3_jax.plots import plot_traces
 
 TRACKS = tr.TEST_TRACKS  # spiral_rt, los_rt
 ROWS = ("T-TD3", "TD3", "NMPC", "geometric")

@@ -14,17 +14,10 @@ import pytest
 
 from ttd3_jax import checkpoint as ckpt
 from ttd3_jax.env import EnvConfig, TrackingEnv, hover_action, make_config
-from ttd3_jax.evaluate import (
-    ROBUSTNESS_CONDITIONS,
-    closed_loop,
-    controller_build,
-    evaluate_robustness,
-    hover_controller,
-    main,
-    robustness_conditions,
-)
+from ttd3_jax.evaluate import closed_loop, controller_build, hover_controller, main
 from ttd3_jax.evaluate import test_tracks as make_test_tracks
 from ttd3_jax.networks import init_params
+from ttd3_jax.robustness import ROBUSTNESS_CONDITIONS, evaluate_robustness, robustness_conditions
 from ttd3_jax.runner import config_to_dict, per_seed, run
 from ttd3_jax.train import make_trainer, preset, seed_keys
 

@@ -8,8 +8,10 @@ A controller is a pair of pure functions ``init(env_state) -> carry`` and
 (parameters such as a policy's weights are arguments, so the seeds of a run share
 them): batched metrics over many tracks, and the run-time figures (Python loop over a
 jitted step as the paper timed it, one compiled scan, per-call latency).
-:func:`evaluate_robustness` repeats the evaluation under wind, an unknown mass error,
-observation noise and one step of actuation delay.
+The robustness suite (:func:`ttd3_jax.robustness.evaluate_robustness`: the evaluation
+repeated under wind, an unknown mass error, observation noise and one step of actuation
+delay) lives in :mod:`ttd3_jax.robustness`, the trace plots (:func:`ttd3_jax.plots.plot_traces`)
+in :mod:`ttd3_jax.plots`; the CLI below uses both.
 
 CLI::
 
@@ -477,75 +479,6 @@ def los_statistics(ev: Evaluator, theta=None, los_seeds=range(1, 21), keys=None)
     return summarize(m, los_seeds)
 
 
-# --------------------------------------------------------------------------- robustness
-
-ROBUSTNESS_WIND = 0.5  # m/s^2, OU stationary std (spec O3)
-ROBUSTNESS_MASS = 0.2  # ± fraction of the mass, unknown to the controller
-# observation noise std: position m, velocity m/s, each quaternion component (then renormalised)
-ROBUSTNESS_OBS_NOISE = {"obs_noise_pos": 0.01, "obs_noise_vel": 0.05, "obs_noise_quat": 0.005}
-ROBUSTNESS_DESCRIPTIONS = {
-    "nominal": "nominal evaluation (spec §2.5)",
-    "wind": f"OU acceleration disturbance, σ = {ROBUSTNESS_WIND} m/s², τ = 0.5 s",
-    "mass+20": f"vehicle mass +{ROBUSTNESS_MASS:.0%}, unknown to the controller and the action map",
-    "mass-20": f"vehicle mass -{ROBUSTNESS_MASS:.0%}, unknown to the controller and the action map",
-    "obs_noise": "observation noise (std): position 0.01 m, velocity 0.05 m/s, quaternion 0.005",
-    "delay": "one control step of actuation delay (the env applies the previous action)",
-}
-ROBUSTNESS_CONDITIONS = tuple(ROBUSTNESS_DESCRIPTIONS)
-
-
-def robustness_conditions(cfg: EnvConfig) -> dict[str, EnvConfig]:
-    """Evaluation configs (``los_rt`` mode, all from ``cfg.for_eval``) of each robustness
-    condition.  The mass conditions change ``quad.mass`` and pin ``thrust_map_mass`` to the
-    nominal mass, so that a hover-centred action map does not learn about the change
-    either.  (Under ``thrust_units="mass_normalized"`` the mass has no effect on the model.)
-    One step of delay is one control step: 1 ms with the ``paper`` preset, 10 ms with
-    ``practical``."""
-    nominal = cfg.for_eval("los_rt")
-    m0 = cfg.quad.mass if cfg.thrust_map_mass is None else cfg.thrust_map_mass
-
-    def mass(factor):
-        quad = nominal.quad.replace(mass=cfg.quad.mass * factor)
-        return dataclasses.replace(nominal, quad=quad, thrust_map_mass=m0)
-
-    return {
-        "nominal": nominal,
-        "wind": cfg.for_eval("los_rt", wind_sigma=ROBUSTNESS_WIND),
-        "mass+20": mass(1.0 + ROBUSTNESS_MASS),
-        "mass-20": mass(1.0 - ROBUSTNESS_MASS),
-        "obs_noise": dataclasses.replace(nominal, **ROBUSTNESS_OBS_NOISE),
-        "delay": dataclasses.replace(nominal, action_delay=1),
-    }
-
-
-def evaluate_robustness(
-    build: Build,
-    theta,
-    cfg: EnvConfig,
-    los_seeds=range(1, 21),
-    conditions=ROBUSTNESS_CONDITIONS,
-    sequential: bool = False,
-    seed: int = 0,
-) -> dict:
-    """The controller ``build(theta)`` (built by the caller for the *nominal* ``cfg``) under
-    each robustness condition: ``{condition: summarize(...)}`` over Spiral-RT and the LOS-RT
-    test instances ``los_seeds`` (mean ± std of Σ‖e‖, energy, crash count).  Each track of a
-    condition runs in one compiled batch; wind and noise keys differ per track (fold_in of
-    ``seed``)."""
-    all_conditions = robustness_conditions(cfg)
-    unknown = [c for c in conditions if c not in all_conditions]
-    if unknown:
-        raise ValueError(f"unknown robustness condition(s) {unknown}; allowed: {ROBUSTNESS_CONDITIONS}")
-    los_seeds = tuple(los_seeds)
-    base = jax.random.PRNGKey(seed)
-    keys = jnp.stack([jax.random.fold_in(base, i) for i in range(len(los_seeds) + 1)])
-    out = {}
-    for name in conditions:
-        ev = Evaluator(TrackingEnv(all_conditions[name]), build, sequential=sequential)
-        out[name] = los_statistics(ev, theta, los_seeds, keys)
-    return out
-
-
 # --------------------------------------------------------------------------- trained policies
 
 
@@ -582,91 +515,6 @@ def load_run(run_dir: str, epoch: int | None = None) -> LoadedRun:
         for i in range(c.num_seeds)
     ]
     return LoadedRun(c, quad_env_config(c), int(epoch), build, thetas)
-
-
-# --------------------------------------------------------------------------- plots
-
-
-def plot_traces(
-    traces: dict[str, dict[str, Trace]],
-    out_dir: str,
-    title: str = "",
-    los_seed: int = 0,
-    prefix: str = "",
-    e_show: float = 2.0,
-    action_note: str = "",
-) -> list[str]:
-    """Per track: ``{prefix}{track}_3d.png`` (reference and flown paths),
-    ``{prefix}{track}_error.png`` (‖e‖ vs time) and ``{prefix}{track}_actions.png`` (the four
-    applied normalised actions and ‖a‖ vs time).  ``traces`` maps a label (controller, seed)
-    to ``{track: Trace}``.  The 3-D plot shows each flown path until its error first
-    exceeds ``e_show`` m; ``action_note`` is appended to the action plot's title."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    os.makedirs(out_dir, exist_ok=True)
-    tracks = [t for t in tr.TEST_TRACKS if any(t in v for v in traces.values())]
-    paths = []
-    for track in tracks:
-        runs = {label: v[track] for label, v in traces.items() if track in v}
-        name = TRACK_TITLES.get(track, track) + (f" seed {los_seed}" if track == "los_rt" else "")
-        finest = max(runs.values(), key=lambda x: x.t.size)
-        suffix = f" ({title})" if title else ""
-
-        fig = plt.figure(figsize=(7, 6))
-        ax = fig.add_subplot(projection="3d")
-        ax.plot(*finest.ref.T, "k--", lw=1.5, label="reference")
-        for label, x in runs.items():
-            # the flown path until the error first exceeds e_show (a path that flies off would
-            # set the axes' scale for everyone)
-            off = np.flatnonzero(~(x.error <= e_show))
-            n = off[0] if off.size else x.t.size
-            if off.size:
-                label = f"{label} (> {e_show:g} m off at {x.t[n]:.2f} s)"
-            ax.plot(*x.pos[:n].T, lw=1.2, label=label)
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        ax.set_zlabel("z [m]")
-        ax.set_title(f"{name}: reference vs flown{suffix}")
-        ax.legend(fontsize=8)
-        paths.append(_save(fig, os.path.join(out_dir, f"{prefix}{track}_3d.png")))
-
-        fig, ax = plt.subplots(figsize=(7, 3.5))
-        for label, x in runs.items():
-            ax.plot(x.t, x.error, lw=1.2, label=label)
-        ax.set_yscale("log")
-        ax.set_xlabel("t [s]")
-        ax.set_ylabel("‖p_d − p‖ [m]")
-        ax.set_title(f"{name}: tracking error{suffix}")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-        paths.append(_save(fig, os.path.join(out_dir, f"{prefix}{track}_error.png")))
-
-        fig, axes = plt.subplots(5, 1, figsize=(7, 9), sharex=True)
-        names = ("a0 (thrust)", "a1 (ω_x)", "a2 (ω_y)", "a3 (ω_z)", "‖a‖")
-        for label, x in runs.items():
-            for j in range(4):
-                axes[j].plot(x.t, x.action[:, j], lw=1.0, label=label)
-            axes[4].plot(x.t, np.linalg.norm(x.action, axis=-1), lw=1.0, label=label)
-        for ax, ylabel in zip(axes, names, strict=True):
-            ax.set_ylabel(ylabel)
-            ax.grid(alpha=0.3)
-        axes[0].set_title(f"{name}: applied normalised actions{action_note}{suffix}")
-        axes[0].legend(fontsize=8)
-        axes[-1].set_xlabel("t [s]")
-        paths.append(_save(fig, os.path.join(out_dir, f"{prefix}{track}_actions.png")))
-    return paths
-
-
-def _save(fig, path: str) -> str:
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
 
 
 # --------------------------------------------------------------------------- CLI helpers
@@ -709,27 +557,6 @@ def format_results(results: dict[str, dict[str, dict]], timing: bool) -> str:
                     f"{m['scan_s']:>7.3f} {m['act_ms']:>7.3f}"
                 )
             lines.append(row)
-    return "\n".join(lines)
-
-
-def format_robustness(label: str, rob: dict) -> str:
-    """Robustness table of one controller."""
-    seeds = next(iter(rob.values()))["los_rt"]["seeds"]
-    lines = [
-        f"robustness of {label}: Spiral-RT, and LOS-RT seeds {seeds[0]}..{seeds[-1]} (mean ± std over "
-        f"{len(seeds)})",
-        f"{'condition':<10} {'Spiral Σ||e||':>13} {'LOS Σ||e|| mean ± std':>24} {'LOS crashes':>11} "
-        f"{'LOS Σ||a|| mean ± std':>22}",
-    ]
-    for name, r in rob.items():
-        los = r["los_rt"]
-        e, a = los["tracking_error"], los["energy"]
-        lines.append(
-            f"{name:<10} {_fmt(r['spiral_rt']['tracking_error'], '13.2f')} "
-            f"{_fmt(e['mean'], '13.2f')} ± {_fmt(e['std'], '8.2f')} "
-            f"{los['crashed']:>5}/{len(los['seeds']):<5} "
-            f"{_fmt(a['mean'], '12.1f')} ± {_fmt(a['std'], '7.1f')}"
-        )
     return "\n".join(lines)
 
 
@@ -866,6 +693,8 @@ def main(argv=None) -> int:
         )
     out: dict = dict(header, results=results, paper=PAPER)
     if args.robustness:
+        from ttd3_jax.robustness import ROBUSTNESS_DESCRIPTIONS, evaluate_robustness, format_robustness
+
         seeds = range(1, args.robustness_seeds + 1)
         out["robustness"] = {}
         out["robustness_conditions"] = ROBUSTNESS_DESCRIPTIONS
@@ -885,6 +714,8 @@ def main(argv=None) -> int:
         print(f"wrote {json_path}")
     plots = args.plots or (os.path.dirname(os.path.abspath(json_path)) if json_path else None)
     if plots:
+        from ttd3_jax.plots import plot_traces
+
         title = header.get("algo", args.controller)
         paths = plot_traces(traces, plots, title, args.los_seed)
         print(f"wrote {len(paths)} plots to {plots}")

@@ -1,0 +1,117 @@
+"""Robustness suite: the evaluation repeated under disturbances (spec O3).
+
+Each condition is an evaluation config (``los_rt`` mode, from ``EnvConfig.for_eval``) of
+the nominal config the controller was built for:
+
+* ``nominal``: the nominal evaluation (spec §2.5);
+* ``wind``: an Ornstein-Uhlenbeck acceleration disturbance, stationary std
+  :data:`ROBUSTNESS_WIND` = 0.5 m/s², time constant 0.5 s;
+* ``mass+20`` / ``mass-20``: vehicle mass ± :data:`ROBUSTNESS_MASS` = 20 %, unknown to the
+  controller and to the action map;
+* ``obs_noise``: Gaussian observation noise, std 0.01 m (position), 0.05 m/s (velocity)
+  and 0.005 per quaternion component (then renormalised);
+* ``delay``: one control step of actuation delay (1 ms with the ``paper`` preset, 10 ms
+  with ``practical``).
+
+:func:`evaluate_robustness` reports, per condition, Σ‖e‖ (m) and energy Σ‖a‖ over
+Spiral-RT and the LOS-RT test instances (mean ± std over seeds) and the crash count;
+:func:`format_robustness` prints it as the CLI's table
+(``python -m ttd3_jax.evaluate [RUN_DIR] --robustness``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from ttd3_jax.env import EnvConfig, TrackingEnv
+from ttd3_jax.evaluate import Build, Evaluator, _fmt, los_statistics
+
+ROBUSTNESS_WIND = 0.5  # m/s^2, OU stationary std (spec O3)
+ROBUSTNESS_MASS = 0.2  # ± fraction of the mass, unknown to the controller
+# observation noise std: position m, velocity m/s, each quaternion component (then renormalised)
+ROBUSTNESS_OBS_NOISE = {"obs_noise_pos": 0.01, "obs_noise_vel": 0.05, "obs_noise_quat": 0.005}
+ROBUSTNESS_DESCRIPTIONS = {
+    "nominal": "nominal evaluation (spec §2.5)",
+    "wind": f"OU acceleration disturbance, σ = {ROBUSTNESS_WIND} m/s², τ = 0.5 s",
+    "mass+20": f"vehicle mass +{ROBUSTNESS_MASS:.0%}, unknown to the controller and the action map",
+    "mass-20": f"vehicle mass -{ROBUSTNESS_MASS:.0%}, unknown to the controller and the action map",
+    "obs_noise": "observation noise (std): position 0.01 m, velocity 0.05 m/s, quaternion 0.005",
+    "delay": "one control step of actuation delay (the env applies the previous action)",
+}
+ROBUSTNESS_CONDITIONS = tuple(ROBUSTNESS_DESCRIPTIONS)
+
+
+def robustness_conditions(cfg: EnvConfig) -> dict[str, EnvConfig]:
+    """Evaluation configs (``los_rt`` mode, all from ``cfg.for_eval``) of each robustness
+    condition.  The mass conditions change ``quad.mass`` and pin ``thrust_map_mass`` to the
+    nominal mass, so that a hover-centred action map does not learn about the change
+    either.  (Under ``thrust_units="mass_normalized"`` the mass has no effect on the model.)
+    One step of delay is one control step: 1 ms with the ``paper`` preset, 10 ms with
+    ``practical``."""
+    nominal = cfg.for_eval("los_rt")
+    m0 = cfg.quad.mass if cfg.thrust_map_mass is None else cfg.thrust_map_mass
+
+    def mass(factor):
+        quad = nominal.quad.replace(mass=cfg.quad.mass * factor)
+        return dataclasses.replace(nominal, quad=quad, thrust_map_mass=m0)
+
+    return {
+        "nominal": nominal,
+        "wind": cfg.for_eval("los_rt", wind_sigma=ROBUSTNESS_WIND),
+        "mass+20": mass(1.0 + ROBUSTNESS_MASS),
+        "mass-20": mass(1.0 - ROBUSTNESS_MASS),
+        "obs_noise": dataclasses.replace(nominal, **ROBUSTNESS_OBS_NOISE),
+        "delay": dataclasses.replace(nominal, action_delay=1),
+    }
+
+
+def evaluate_robustness(
+    build: Build,
+    theta,
+    cfg: EnvConfig,
+    los_seeds=range(1, 21),
+    conditions=ROBUSTNESS_CONDITIONS,
+    sequential: bool = False,
+    seed: int = 0,
+) -> dict:
+    """The controller ``build(theta)`` (built by the caller for the *nominal* ``cfg``) under
+    each robustness condition: ``{condition: summarize(...)}`` over Spiral-RT and the LOS-RT
+    test instances ``los_seeds`` (mean ± std of Σ‖e‖, energy, crash count).  Each track of a
+    condition runs in one compiled batch; wind and noise keys differ per track (fold_in of
+    ``seed``)."""
+    all_conditions = robustness_conditions(cfg)
+    unknown = [c for c in conditions if c not in all_conditions]
+    if unknown:
+        raise ValueError(f"unknown robustness condition(s) {unknown}; allowed: {ROBUSTNESS_CONDITIONS}")
+    los_seeds = tuple(los_seeds)
+    base = jax.random.PRNGKey(seed)
+    keys = jnp.stack([jax.random.fold_in(base, i) for i in range(len(los_seeds) + 1)])
+    out = {}
+    for name in conditions:
+        ev = Evaluator(TrackingEnv(all_conditions[name]), build, sequential=sequential)
+        out[name] = los_statistics(ev, theta, los_seeds, keys)
+    return out
+
+
+def format_robustness(label: str, rob: dict) -> str:
+    """Robustness table of one controller."""
+    seeds = next(iter(rob.values()))["los_rt"]["seeds"]
+    lines = [
+        f"robustness of {label}: Spiral-RT, and LOS-RT seeds {seeds[0]}..{seeds[-1]} (mean ± std over "
+        f"{len(seeds)})",
+        f"{'condition':<10} {'Spiral Σ||e||':>13} {'LOS Σ||e|| mean ± std':>24} {'LOS crashes':>11} "
+        f"{'LOS Σ||a|| mean ± std':>22}",
+    ]
+    for name, r in rob.items():
+        los = r["los_rt"]
+        e, a = los["tracking_error"], los["energy"]
+        lines.append(
+            f"{name:<10} {_fmt(r['spiral_rt']['tracking_error'], '13.2f')} "
+            f"{_fmt(e['mean'], '13.2f')} ± {_fmt(e['std'], '8.2f')} "
+            f"{los['crashed']:>5}/{len(los['seeds']):<5} "
+            f"{_fmt(a['mean'], '12.1f')} ± {_fmt(a['std'], '7.1f')}"
+        )
+    return "\n".join(lines)
