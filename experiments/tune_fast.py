@@ -60,6 +60,7 @@ VARIANTS = {
     "cubic_rates_0.25": ({"rate_map": "cubic", "rate_map_slope": 0.25}, {}, {}),
     "heading_frame": ({"obs_frame": "heading"}, {}, {}),
     "small_init": ({"init_pos": 0.01, "init_vel": 0.02, "init_tilt_deg": 1.0}, {}, {}),
+    "precision_bonus": ({"precision_bonus": 0.1, "precision_scale": 0.02}, {}, {}),
     "utd_1": ({}, {"num_envs": 16, "total_transitions": 300_000, "buffer_size": 300_000}, {}),
     "lr_linear_900k": (
         {},

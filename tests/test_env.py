@@ -111,6 +111,16 @@ def test_squared_error_cost_option():
     np.testing.assert_allclose(float(s2.reward), -(e**2), rtol=1e-5)
 
 
+@pytest.mark.parametrize("offset", [0.01, 0.3])
+def test_precision_bonus_option(offset):
+    """precision_bonus κ adds κ (1 − exp(−e/ε)) to the error cost (ρ₁ = 1, no effort cost)."""
+    env = spiral_env(rho2=0.0, precision_bonus=0.1, precision_scale=0.02)
+    s = with_quad(env, env.reset(jax.random.PRNGKey(0)), 10, spiral_np(10) + [offset, 0, 0])
+    s2 = env.step(s, hover_action(env.config))
+    e = np.linalg.norm(spiral_np(11) - np.asarray(s2.pipeline_state.quad.p, np.float64))
+    np.testing.assert_allclose(float(s2.reward), -(e + 0.1 * (1 - np.exp(-e / 0.02))), rtol=1e-5)
+
+
 def test_crash_terminates_with_penalty():
     env = TrackingEnv(make_config("paper", track="spiral_rt", randomize_init=False))
     s = with_quad(env, env.reset(jax.random.PRNGKey(0)), 10, spiral_np(10) + [2.5, 0, 0])
@@ -321,6 +331,8 @@ def test_geometric_controller_tracks_both_test_tracks():
         (dict(effort_weights=(1, 1, 1)), "effort_weights"),
         (dict(lookahead_k=1.5), "lookahead_k"),
         (dict(rate_map="quadratic"), "rate_map"),
+        (dict(precision_bonus=-0.1), "precision_bonus"),
+        (dict(precision_scale=0.0), "precision_scale"),
         (dict(rate_map="cubic", rate_map_slope=0.0), "rate_map_slope"),
         (dict(rate_map="cubic", rate_map_slope=1.5), "rate_map_slope"),
     ],

@@ -82,6 +82,8 @@ class EnvConfig:
     effort_weights: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)  # diag Ω
     effort_hover_relative: bool = False  # penalise (a - a_hover) instead of a
     rho_vel: float = 0.0  # 1/(m/s): extra cost rho_vel ||v - v_ref|| per physics step (not in the paper)
+    precision_bonus: float = 0.0  # m: extra cost κ (1 − exp(−||e||/precision_scale)) per physics
+    precision_scale: float = 0.02  # m, ε   step (not in the paper): slope 1 + κ/ε at e = 0
     terminate: bool = True
     e_max: float = 2.0  # m
     crash_penalty: float = 400.0  # = rho1 r_e(e_max) action_repeat / (1 - 0.99)
@@ -123,13 +125,14 @@ class EnvConfig:
             if getattr(self, name) not in allowed:
                 raise ValueError(f"EnvConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
 
-        for name in ("dt", "e_max", "wind_tau", "rho1"):
+        for name in ("dt", "e_max", "wind_tau", "rho1", "precision_scale"):
             positive(name)
         for name in ("episode_steps", "action_repeat", "rk4_substeps", "lookahead_k"):
             positive(name, integer=True)
         for name in (
             "rho2",
             "rho_vel",
+            "precision_bonus",
             "crash_penalty",
             "init_pos",
             "init_vel",
@@ -480,6 +483,8 @@ class TrackingEnv(Env):
         e = jnp.linalg.norm(p_ref - quad.p)
         finite = jnp.isfinite(e) & _finite(quad)
         step_r = step_r - c.rho1 * error_cost(c, e)
+        if c.precision_bonus > 0:
+            step_r = step_r - c.rho1 * c.precision_bonus * (1.0 - jnp.exp(-e / c.precision_scale))
         reward = reward + jnp.where(~crashed & finite, step_r, 0.0)
         err_sum = err_sum + jnp.where(finite, e, jnp.inf)
         crashed = crashed | ~finite | (e > c.e_max)
