@@ -462,3 +462,32 @@ def test_twin_critics_are_one_vmapped_apply_equal_to_two_separate_ones():
             q[i], nets.critic.apply(p, jnp.concatenate([obs, act], -1))[..., 0], rtol=1e-5, atol=1e-6
         )
     assert not np.allclose(q[0], q[1])  # two independently initialised critics
+
+
+def test_policy_selected_on_validation_tracks_is_saved_and_reloads(tmp_path):
+    """Each seed keeps the policy of its epoch with the lowest validation error (spec T8,
+    never the test tracks); eval.json names that epoch with its test figures, and
+    ``evaluate.load_run(best=True)`` reloads it: evaluated again it gives the same numbers."""
+    from ttd3_jax import checkpoint as ckpt
+    from ttd3_jax.env import TrackingEnv
+    from ttd3_jax.evaluate import evaluate_on_tracks, load_run, test_tracks
+
+    c = tiny(num_seeds=2, epochs=3, normalize_obs=True)
+    summary = run(c, out=str(tmp_path), verbose=False)
+    rows = read_metrics(summary["run_dir"])
+    record = ckpt.best_record(summary["run_dir"])
+    assert sorted(record) == [0, 1]
+    for sel in summary["selected"]:
+        mine = [r for r in rows if int(r["seed"]) == sel["seed"]]
+        best = min(mine, key=lambda r: r["val_tracking_error"])
+        assert sel["epoch"] == int(best["epoch"]) == record[sel["seed"]]["epoch"]
+        assert sel["spiral_tracking_error"] == pytest.approx(best["spiral_tracking_error"])
+    assert len(summary["selected_beats_paper"]) == 2
+    loaded = load_run(summary["run_dir"], best=True)
+    assert loaded.epoch == {s["seed"]: s["epoch"] for s in summary["selected"]}
+    env = TrackingEnv(loaded.env_config.for_eval("los_rt"))
+    for (seed, theta), sel in zip(loaded.thetas, summary["selected"], strict=True):
+        assert seed == sel["seed"]
+        m = jax.jit(lambda th: evaluate_on_tracks(env, loaded.build(th), test_tracks(env)))(theta)
+        np.testing.assert_allclose(float(m["tracking_error"][0]), sel["spiral_tracking_error"], rtol=1e-4)
+        np.testing.assert_allclose(float(m["tracking_error"][1]), sel["los_tracking_error"], rtol=1e-4)

@@ -6,12 +6,14 @@ it), so a run killed at any point keeps its last complete checkpoint.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 
 import jax
 import jax.numpy as jnp
 import orbax.checkpoint as ocp
+from flax import serialization
 
 # Orbax refuses zero-size arrays (MJX states carry some, e.g. ``act`` for models without
 # actuator state): they are stored as a 1-element placeholder and rebuilt on restore.
@@ -50,3 +52,50 @@ def restore(mngr: ocp.CheckpointManager, epoch: int, like):
     )
     out = mngr.restore(epoch, args=ocp.args.StandardRestore(abstract))
     return jax.tree.map(lambda o, x: jnp.zeros(x.shape, x.dtype) if _empty(x) else o, out, like)
+
+
+# --------------------------------------------------------------------------- selected policy
+# The policy chosen on the validation tracks (spec T8) is kept apart from the rolling train-
+# state checkpoints (which keep only the last two epochs): per seed, the actor parameters
+# and observation statistics as flax msgpack, plus ``best/best.json`` with its epoch and
+# validation error.  Writes are atomic (temporary file, then rename).
+
+
+def _atomic_write(path: str, data: bytes | str) -> None:
+    tmp = path + ".tmp"
+    with open(tmp, "wb" if isinstance(data, bytes) else "w") as fh:
+        fh.write(data)
+    os.replace(tmp, path)
+
+
+def best_record(run_dir: str) -> dict[int, dict]:
+    """``{seed: {"epoch": e, "val_tracking_error": v}}`` of the saved selected policies."""
+    path = os.path.join(run_dir, "best", "best.json")
+    if not os.path.exists(path):
+        return {}
+    with open(path) as fh:
+        return {int(k): v for k, v in json.load(fh).items()}
+
+
+def save_policy(run_dir: str, seed: int, epoch: int, value: float, policy) -> None:
+    """Store ``policy`` (a pytree: actor parameters, observation statistics) as seed
+    ``seed``'s selected policy, chosen at ``epoch`` with validation error ``value``."""
+    folder = os.path.join(run_dir, "best")
+    os.makedirs(folder, exist_ok=True)
+    _atomic_write(os.path.join(folder, f"seed{seed}.msgpack"), serialization.to_bytes(jax.device_get(policy)))
+    record = best_record(run_dir)
+    record[seed] = {"epoch": int(epoch), "val_tracking_error": float(value)}
+    _atomic_write(
+        os.path.join(folder, "best.json"), json.dumps({str(k): v for k, v in sorted(record.items())})
+    )
+
+
+def load_policy(run_dir: str, seed: int, like):
+    """Seed ``seed``'s selected policy, restored into the structure of ``like``."""
+    path = os.path.join(run_dir, "best", f"seed{seed}.msgpack")
+    if not os.path.exists(path):
+        raise FileNotFoundError(
+            f"no selected policy for seed {seed} in {run_dir!r} (best/ is written by quadrotor runs)"
+        )
+    with open(path, "rb") as fh:
+        return serialization.from_bytes(like, fh.read())

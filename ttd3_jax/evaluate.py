@@ -17,7 +17,7 @@ CLI::
 
     python -m ttd3_jax.evaluate --controller geometric        # Spiral-RT and LOS-RT seed 0
     python -m ttd3_jax.evaluate --controller nmpc --nmpc-solve-every 10
-    python -m ttd3_jax.evaluate RUN_DIR [--epoch E] [--seed-index I] [--robustness]
+    python -m ttd3_jax.evaluate RUN_DIR [--epoch E | --best] [--seed-index I] [--robustness]
 """
 
 from __future__ import annotations
@@ -485,15 +485,16 @@ def los_statistics(ev: Evaluator, theta=None, los_seeds=range(1, 21), keys=None)
 class LoadedRun(NamedTuple):
     config: Any  # TrainConfig
     env_config: EnvConfig  # the run's (training) env config
-    epoch: int
+    epoch: int | dict  # the checkpoint's epoch, or {seed: epoch} of the selected policies
     build: Build  # theta = (actor params, obs stats or None) -> policy Controller
     thetas: list  # [(seed, theta)] for every seed of the run
 
 
-def load_run(run_dir: str, epoch: int | None = None) -> LoadedRun:
+def load_run(run_dir: str, epoch: int | None = None, best: bool = False) -> LoadedRun:
     """A quadrotor training run's checkpoint ``epoch`` (default: the latest) as policy
     controllers, one per seed, with the env config the run trained on (the policy must see
-    the observation layout it was trained with)."""
+    the observation layout it was trained with).  ``best``: instead, each seed's policy
+    selected on the validation tracks during training (``run_dir/best/``)."""
     from ttd3_jax import checkpoint as ckpt
     from ttd3_jax.runner import load_config, load_train_state
     from ttd3_jax.train import QUADROTOR, policy_controller, quad_env_config
@@ -501,6 +502,8 @@ def load_run(run_dir: str, epoch: int | None = None) -> LoadedRun:
     c = load_config(run_dir)
     if c.env != QUADROTOR:
         raise ValueError(f"{run_dir!r} is a {c.env!r} run; only quadrotor runs can be evaluated here")
+    if best:
+        return _load_selected(run_dir, c)
     if epoch is None:
         epoch = ckpt.latest_epoch(ckpt.manager(run_dir))
     c, trainer, state = load_train_state(run_dir, epoch)
@@ -515,6 +518,33 @@ def load_run(run_dir: str, epoch: int | None = None) -> LoadedRun:
         for i in range(c.num_seeds)
     ]
     return LoadedRun(c, quad_env_config(c), int(epoch), build, thetas)
+
+
+def _load_selected(run_dir: str, c) -> LoadedRun:
+    from ttd3_jax import checkpoint as ckpt
+    from ttd3_jax import normalize as nrm
+    from ttd3_jax.train import initial_actor, make_trainer, policy_controller, quad_env_config
+
+    record = ckpt.best_record(run_dir)
+    seeds = range(c.seed, c.seed + c.num_seeds)
+    missing = [s for s in seeds if s not in record]
+    if missing:
+        raise FileNotFoundError(f"no selected policy for seed(s) {missing} in {run_dir!r} (best/best.json)")
+    trainer = make_trainer(c)
+    like = {
+        "actor": initial_actor(trainer, jax.random.PRNGKey(0)),
+        "obs_stats": nrm.init(trainer.spec.obs_size) if c.normalize_obs else None,
+    }
+
+    def build(theta):
+        actor, stats = theta
+        return policy_controller(trainer.nets, actor, stats)
+
+    thetas = []
+    for s in seeds:
+        p = ckpt.load_policy(run_dir, s, like)
+        thetas.append((s, (p["actor"], p["obs_stats"])))
+    return LoadedRun(c, quad_env_config(c), {s: record[s]["epoch"] for s in seeds}, build, thetas)
 
 
 # --------------------------------------------------------------------------- CLI helpers
@@ -576,6 +606,9 @@ def main(argv=None) -> int:
         "--controller", default=None, choices=CONTROLLERS, help="classical controller (default geometric)"
     )
     ap.add_argument("--epoch", type=int, default=None, help="checkpoint of RUN_DIR (default: the latest)")
+    ap.add_argument(
+        "--best", action="store_true", help="RUN_DIR's policies selected on the validation tracks (best/)"
+    )
     ap.add_argument("--seed-index", type=int, default=None, help="only this seed of RUN_DIR (default: all)")
     ap.add_argument(
         "--preset", default=None, choices=PRESETS, help="env preset of --controller (default paper)"
@@ -624,6 +657,8 @@ def main(argv=None) -> int:
         for flag, value in (("--epoch", args.epoch), ("--seed-index", args.seed_index)):
             if value is not None:
                 ap.error(f"{flag} needs RUN_DIR")
+        if args.best:
+            ap.error("--best needs RUN_DIR")
         args.controller = args.controller or "geometric"
         args.preset = args.preset or "paper"
         if options and args.controller != "nmpc":
@@ -645,7 +680,9 @@ def main(argv=None) -> int:
             num_seeds = load_config(args.run_dir).num_seeds
             if args.seed_index is not None and not 0 <= args.seed_index < num_seeds:
                 raise ValueError(f"--seed-index must be in [0, {num_seeds - 1}], got {args.seed_index}")
-            run = load_run(args.run_dir, args.epoch)
+            if args.best and args.epoch is not None:
+                raise ValueError("--best and --epoch exclude each other")
+            run = load_run(args.run_dir, args.epoch, best=args.best)
         except (FileNotFoundError, ValueError) as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
@@ -654,8 +691,10 @@ def main(argv=None) -> int:
         labels = {f"seed {s}": theta for s, theta in thetas}
         c = run.config
         header.update(run_dir=args.run_dir, epoch=run.epoch, algo=c.algo, env_preset=c.env_preset)
+        which = f"selected on the validation tracks, epochs {run.epoch}" if args.best else ""
+        which = which or f"epoch {run.epoch}"
         print(
-            f"run {args.run_dir} epoch {run.epoch} ({c.algo}, env preset {c.env_preset}, "
+            f"run {args.run_dir} {which} ({c.algo}, env preset {c.env_preset}, "
             f"hover_centered_thrust={c.hover_centered_thrust}) device={device}"
         )
         sequential = False

@@ -255,8 +255,9 @@ def _progress_line(epoch, epochs, m, ev, sps, c: TrainConfig) -> str:
     steps = float(np.mean(m["env_steps"]))
     sigma = float(np.mean(m["sigma"]))
     if c.env == QUADROTOR:
-        sp, los = (float(np.median(ev[k])) for k in ("spiral_tracking_error", "los_tracking_error"))
-        tail = f"Spiral-RT {sp:8.2f}  LOS-RT {los:8.2f}"
+        sp, los, val = (float(np.median(ev[k])) for k in ("spiral_tracking_error", "los_tracking_error",
+                                                           "val_tracking_error"))  # fmt: skip
+        tail = f"Spiral-RT {sp:8.2f}  LOS-RT {los:8.2f}  val {val:8.2f}"
     else:
         tail = f"eval return {float(np.mean(ev['eval_return'])):9.2f}"
     return f"[{bar}] epoch {epoch:>3}/{epochs}  steps {steps:9.3g}  {sps:8.3g}/s  σ {sigma:.3g}  {tail}"
@@ -358,6 +359,8 @@ def run(
             row.update(_row_values(ev, i))
             rows.append(row)
         csv_log.write(rows)
+        if c.env == QUADROTOR:
+            _select(run_dir, c, epoch, ev, ts)
         if tb is not None:
             for k, v in rows[0].items():
                 tb.add_scalar(k, v, int(rows[0]["env_steps"]))
@@ -372,7 +375,8 @@ def run(
     if ev is None:
         ev = jax.device_get(eval_c(ts))
     summary = _finish(run_dir, c, ev, compile_s, run_s)
-    log(f"results in {run_dir}: metrics.csv, eval.json, learning_curve.png, checkpoints/")
+    extra = ", best/ (the policy selected on the validation tracks)" if c.env == QUADROTOR else ""
+    log(f"results in {run_dir}: metrics.csv, eval.json, learning_curve.png, checkpoints/{extra}")
     return summary
 
 
@@ -398,6 +402,39 @@ def _check_finite(m, ts, epoch: int, c: TrainConfig, run_dir: str, mngr) -> None
         )
 
 
+def _select(run_dir: str, c: TrainConfig, epoch: int, ev, ts) -> None:
+    """Keep each seed's policy with the lowest validation error so far (spec T8: selection
+    on the 10 validation tracks, never on the test tracks) in ``run_dir/best/``."""
+    record = ckpt.best_record(run_dir)
+    for i in range(c.num_seeds):
+        seed, v = c.seed + i, float(np.asarray(ev["val_tracking_error"])[i])
+        if np.isfinite(v) and (seed not in record or v < record[seed]["val_tracking_error"]):
+            stats = jax.tree.map(lambda x, i=i: x[i], ts.obs_stats) if c.normalize_obs else None
+            ckpt.save_policy(run_dir, seed, epoch, v, {"actor": jax.tree.map(lambda x, i=i: x[i], ts.actor),
+                                                       "obs_stats": stats})  # fmt: skip
+
+
+def selected_policies(run_dir: str) -> list[dict]:
+    """Per seed: the epoch selected on the validation tracks and that epoch's test figures
+    (from metrics.csv).  Empty for runs without ``best/``."""
+    record, rows = ckpt.best_record(run_dir), read_metrics(run_dir)
+    out = []
+    for seed, b in sorted(record.items()):
+        row = next(r for r in rows if int(r["epoch"]) == b["epoch"] and int(float(r["seed"])) == seed)
+        out.append(
+            dict(
+                seed=seed,
+                epoch=b["epoch"],
+                val_tracking_error=b["val_tracking_error"],
+                **{
+                    k: float(row[k])
+                    for k in ("spiral_tracking_error", "los_tracking_error", "spiral_crashed", "los_crashed")
+                },  # fmt: skip
+            )
+        )
+    return out
+
+
 def _finish(run_dir: str, c: TrainConfig, ev, compile_s: float, run_s: float) -> dict:
     seed_evals = [{k: float(np.asarray(v)[i]) for k, v in ev.items()} for i in range(c.num_seeds)]
     summary = {
@@ -411,13 +448,17 @@ def _finish(run_dir: str, c: TrainConfig, ev, compile_s: float, run_s: float) ->
         "device": jax.devices()[0].device_kind,
     }
     if c.env == QUADROTOR:
+
+        def beats(s):
+            return bool(s["spiral_tracking_error"] <= PAPER_TTD3["spiral_tracking_error"] and
+                        s["los_tracking_error"] <= PAPER_TTD3["los_tracking_error"] and
+                        s["spiral_crashed"] == 0 and s["los_crashed"] == 0)  # fmt: skip
+
         summary["paper_ttd3"] = PAPER_TTD3
-        summary["beats_paper"] = [
-            bool(s["spiral_tracking_error"] <= PAPER_TTD3["spiral_tracking_error"] and
-                 s["los_tracking_error"] <= PAPER_TTD3["los_tracking_error"] and
-                 s["spiral_crashed"] == 0 and s["los_crashed"] == 0)
-            for s in seed_evals
-        ]  # fmt: skip
+        summary["beats_paper"] = [beats(s) for s in seed_evals]
+        # the policy chosen on the validation tracks (best/; evaluate it with --best)
+        summary["selected"] = selected_policies(run_dir)
+        summary["selected_beats_paper"] = [beats(s) for s in summary["selected"]]
     with open(os.path.join(run_dir, "eval.json"), "w") as fh:
         json.dump(
             summary, fh, indent=2, default=lambda x: None if isinstance(x, float) and math.isnan(x) else x

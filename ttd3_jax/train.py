@@ -34,6 +34,7 @@ from ttd3_jax.env import TrackingEnv, make_config
 from ttd3_jax.evaluate import Controller, evaluate_on_tracks, test_tracks
 from ttd3_jax.losses import actor_loss, critic_loss
 from ttd3_jax.networks import Networks, init_params, make_networks
+from ttd3_jax.trajectories import validation_tracks
 
 QUADROTOR = "quadrotor"
 BRAX_ENVS = (
@@ -469,12 +470,18 @@ def policy_controller(nets: Networks, actor_params, obs_stats: nrm.ObsStats | No
 
 def _eval_quad(c: TrainConfig, nets: Networks, actor, obs_stats) -> dict:
     """Spiral-RT and LOS-RT (seed 0) with the paper's evaluation protocol (spec §2.5),
-    both in one vmapped closed loop."""
-    env = TrackingEnv(quad_env_config(c).for_eval("los_rt"))
-    m = evaluate_on_tracks(env, policy_controller(nets, actor, obs_stats), test_tracks(env))
+    both in one vmapped closed loop; plus ``val_tracking_error``, the mean Σ‖e‖ over the 10
+    validation tracks (spec T8), the only figure used to select a policy."""
+    base = quad_env_config(c)
+    ctrl = policy_controller(nets, actor, obs_stats)
+    env = TrackingEnv(base.for_eval("los_rt"))
+    m = evaluate_on_tracks(env, ctrl, test_tracks(env))
     out = {}
     for i, name in enumerate(("spiral", "los")):
         out.update({f"{name}_{k}": v[i] for k, v in m.items()})
+    venv = TrackingEnv(base.for_eval("validation"))
+    val = validation_tracks(base.tracks, base.dt, base.horizon_steps, venv.num_segments)
+    out["val_tracking_error"] = jnp.mean(evaluate_on_tracks(venv, ctrl, val)["tracking_error"])
     return out
 
 
