@@ -379,8 +379,12 @@ def write_readme(a: argparse.Namespace, summary: list[dict], wall_s: float) -> N
         note = f" ({a.device_note})" if a.device_note else ""
         fh.write(f"- device: {dev.platform} {dev.device_kind}{note}\n")
         fh.write("- commands (each trains the tasks it names; finished tasks are skipped):\n")
-        fh.writelines(f"  - `{c}`\n" for c in commands)
-        fh.write(f"- wall time of the last invocation: {wall_s:.0f} s\n\n")
+        for line in commands:
+            date, _, cmd = line.partition("  ")
+            fh.write(f"  - {date}: `{cmd.strip()}`\n")
+        if not a.report_only:
+            fh.write(f"- wall time of the last invocation: {wall_s:.0f} s\n")
+        fh.write("\n")
         fh.write("Curves: `curves.png` (mean ± ½ std over seeds). Every evaluation: `evals.csv`.\n\n")
         fh.write(summary_markdown(summary))
         fh.write("\nReading (generated; AUC is the mean return over all evaluations):\n\n")
