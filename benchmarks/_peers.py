@@ -243,3 +243,16 @@ def append_record(path: str, record: dict) -> None:
         with open(path, "a") as fh:
             fh.write(json.dumps(record) + "\n")
         print(f"appended to {path}")
+
+
+def print_machine(record: dict):
+    """Print the header line of a peer benchmark's table (our device, cores, jax, CPU);
+    returns the device."""
+    import jax
+
+    dev = jax.devices()[0]
+    print(
+        f"device={dev.platform} ({dev.device_kind}) cpus={os.cpu_count()} jax={jax.__version__} "
+        f"{record['cpu']}"
+    )
+    return dev

@@ -256,11 +256,7 @@ def main(argv=None):
         if worker:
             worker.close()
 
-    dev = jax.devices()[0]
-    print(
-        f"device={dev.platform} ({dev.device_kind}) cpus={os.cpu_count()} jax={jax.__version__} "
-        f"{record['cpu']}"
-    )
+    dev = _peers.print_machine(record)
     print(
         f"{'envs':>6} {'case':<15} {'compile s':>9} {'run s':>8} {'env-steps/s':>12} {'x rk4 time':>10} "
         f"{'ours/cf':>8}"

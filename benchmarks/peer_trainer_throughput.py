@@ -453,11 +453,7 @@ def main(argv=None):
             o["updates_per_s"] / r["updates_per_s"] if o and r["framework"] != "ours" else None
         )
 
-    dev = jax.devices()[0]
-    print(
-        f"device={dev.platform} ({dev.device_kind}) cpus={os.cpu_count()} jax={jax.__version__} "
-        f"{record['cpu']}"
-    )
+    dev = _peers.print_machine(record)
     print(
         f"{'group':<15} {'framework':<9} {'envs':>4} {'UTD':>3} {'hidden':>7} {'setup s':>7} "
         f"{'compile s':>9} {'run s':>6} {'env-steps/s':>11} {'updates/s':>9} {'ours/this':>9}"
