@@ -9,6 +9,9 @@ vehicles.  Compile time is reported apart from run time; run time is the best of
 
 Cases:
   rk4          bare model: vmapped rk4_step with fixed controls (the floor)
+  ref_lookup   the reference lookup alone: trajectories.position at k+1 for every env, the
+               one lookup each env step makes (a per-env gather from the segment table and
+               the spiral formula, selected by track kind)
   env_nominal  env.step on training-mixture tracks, no wind, no observation noise
   env_paper    env.step with the paper preset's training wind (OU, one normal draw per step)
 """
@@ -24,7 +27,9 @@ import platform
 import time
 
 import jax
+import jax.numpy as jnp
 
+from ttd3_jax import trajectories as tr
 from ttd3_jax.dynamics import rk4_step
 from ttd3_jax.env import TrackingEnv, action_to_control, make_config
 
@@ -44,6 +49,24 @@ def rk4_case(cfg, n_envs, n_steps):
     return run, quad0
 
 
+def lookup_case(cfg, n_envs, n_steps):
+    env = TrackingEnv(cfg)
+    keys = jax.random.split(jax.random.PRNGKey(0), n_envs)
+    s0 = jax.jit(jax.vmap(env.reset))(keys)
+    track = s0.pipeline_state.track
+    lookup = jax.vmap(lambda tk, k: tr.position(tk, k, cfg.dt))
+
+    def run(k0):
+        def body(carry, _):
+            k, acc = carry
+            return (k + 1, acc + lookup(track, k + 1)), None
+
+        (_, acc), _ = jax.lax.scan(body, (k0, jnp.zeros((n_envs, 3))), None, length=n_steps)
+        return acc.sum()
+
+    return run, s0.pipeline_state.k
+
+
 def env_case(cfg, n_envs, n_steps):
     env = TrackingEnv(cfg)
     keys = jax.random.split(jax.random.PRNGKey(0), n_envs)
@@ -53,8 +76,15 @@ def env_case(cfg, n_envs, n_steps):
 
     def run(s):
         step = jax.vmap(env.step)
-        s, r = jax.lax.scan(lambda s, _: (step(s, a), s.reward.sum()), s, None, length=n_steps)
-        return r.sum()
+
+        def body(carry, _):
+            s, acc = carry
+            s = step(s, a)
+            return (s, acc + s.reward + s.done), None
+
+        (s, acc), _ = jax.lax.scan(body, (s, jnp.zeros(n_envs)), None, length=n_steps)
+        # the final observation is consumed too, so XLA cannot drop its computation
+        return acc.sum() + s.obs.sum()
 
     return run, s0
 
@@ -75,6 +105,7 @@ def main(argv=None):
     base = make_config("paper")
     cases = {
         "rk4": rk4_case(base, args.envs, args.steps),
+        "ref_lookup": lookup_case(dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps),
         "env_nominal": env_case(dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps),
         "env_paper": env_case(base, args.envs, args.steps),
     }

@@ -60,6 +60,31 @@ VARIANTS = {
     "cubic_rates": ({"rate_map": "cubic"}, {}, {}),
     "cubic_rates_0.25": ({"rate_map": "cubic", "rate_map_slope": 0.25}, {}, {}),
     "heading_frame": ({"obs_frame": "heading"}, {}, {}),
+    "error_frame": ({"obs_frame": "error"}, {}, {}),
+    "advantage_critic": ({}, {"critic": "advantage"}, {}),
+    "advantage_critic_lambda_0.001": ({}, {"critic": "advantage"}, {"lam": 0.001}),
+    "advantage_critic_error_frame": ({"obs_frame": "error"}, {"critic": "advantage"}, {}),
+    "no_dynamics_tracks": ({"tracks": TrackConfig(train_mix=(0.0, 0.5, 0.5))}, {}, {}),
+    "no_dynamics_tracks_adv_lambda_0.001": (
+        {"tracks": TrackConfig(train_mix=(0.0, 0.5, 0.5))},
+        {"critic": "advantage"},
+        {"lam": 0.001},
+    ),  # fmt: skip
+    "hover_only": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4))}, {}, {}),  # a diagnostic
+    "hover_only_td3_sigma_0.1": (
+        {"tracks": TrackConfig(train_scale=(1e-4, 1e-4))},
+        {"algo": "td3"},
+        {"sigma": 0.1},
+    ),  # fmt: skip
+    "hover_only_repeat_50": (
+        {"tracks": TrackConfig(train_scale=(1e-4, 1e-4)), "action_repeat": 50, "crash_penalty": 5000.0},
+        {},
+        {},
+    ),  # fmt: skip
+    "hover_only_gamma_0.95": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4))}, {}, {"gamma": 0.95}),
+    "hover_only_effort_10x": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4)), "rho2": 0.1}, {}, {}),
+    "repeat_20": ({"action_repeat": 20, "crash_penalty": 2000.0}, {}, {}),
+    "repeat_20_gamma_0.98": ({"action_repeat": 20, "crash_penalty": 1000.0}, {}, {"gamma": 0.98}),
     "small_init": ({"init_pos": 0.01, "init_vel": 0.02, "init_tilt_deg": 1.0}, {}, {}),
     "precision_bonus": ({"precision_bonus": 0.1, "precision_scale": 0.02}, {}, {}),
     "utd_1": ({}, {"num_envs": 16, "total_transitions": 300_000, "buffer_size": 300_000}, {}),

@@ -405,6 +405,26 @@ def test_track_frame_observation_is_translation_invariant():
         make_config("paper", obs_frame="body")
 
 
+def test_error_frame_observation_holds_the_velocity_error():
+    """obs_frame="error": the track frame with v − v̂_d in slot 2 and v in slot 5, where
+    v̂_d = (p_d,k+L − p_d,k) / (L dt) is the reference's mean velocity over the look-ahead."""
+    cfg = make_config("practical", obs_frame="error").for_eval("los_rt")
+    env = TrackingEnv(cfg)
+    ps = env.reset(jax.random.PRNGKey(0)).pipeline_state
+    quad = ps.quad.replace(p=jnp.array([0.4, -0.1, 0.2]), v=jnp.array([1.0, 0.5, -0.2]))
+    ps = ps.replace(k=jnp.asarray(500, jnp.int32), quad=quad)
+    oe, _ = env.observe(ps)
+    ot, _ = TrackingEnv(dataclasses.replace(cfg, obs_frame="track")).observe(ps)
+    p0 = tr.position(ps.track, 500, cfg.dt)
+    p1 = tr.position(ps.track, 500 + cfg.lookahead_k, cfg.dt)
+    v_hat = (p1 - p0) / (cfg.lookahead_k * cfg.dt)
+    assert float(jnp.linalg.norm(v_hat)) > 1.0  # LOS-RT moves at 1.5-2.5 m/s
+    np.testing.assert_allclose(oe[3:6], quad.v - v_hat, atol=1e-4)
+    np.testing.assert_allclose(oe[13:16], quad.v, atol=1e-6)
+    same = [0, 1, 2, 6, 7, 8, 9, 10, 11, 12, 16]
+    np.testing.assert_allclose(np.asarray(oe)[same], np.asarray(ot)[same], atol=1e-6)
+
+
 def test_heading_frame_observation_is_yaw_invariant():
     """obs_frame="heading": rotating the whole scene (vehicle and track) about z leaves the
     observation unchanged; it is the track-frame observation turned by -yaw, with the same

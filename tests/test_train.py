@@ -52,6 +52,7 @@ def tiny(**kw) -> TrainConfig:
         (dict(hp=Hyper(gamma=1.0)), "hp.gamma"),
         (dict(hp=Hyper(lr_critic=0.0)), "hp.lr_critic"),
         (dict(target_noise="shared"), "target_noise"),
+        (dict(critic="dueling"), "critic must be one of"),
     ],
 )
 def test_config_errors_are_raised_at_construction(kw, match):
@@ -462,6 +463,35 @@ def test_twin_critics_are_one_vmapped_apply_equal_to_two_separate_ones():
             q[i], nets.critic.apply(p, jnp.concatenate([obs, act], -1))[..., 0], rtol=1e-5, atol=1e-6
         )
     assert not np.allclose(q[0], q[1])  # two independently initialised critics
+
+
+def test_advantage_critic_is_value_plus_centred_advantage():
+    """critic="advantage": Q(s, ā) = V(s) at the baseline action, ∂Q/∂ā = 0, and Q(s, a)
+    − Q(s, ā) does not depend on V; the actor's gradient flows through A only."""
+    from ttd3_jax.losses import actor_loss, critic_loss
+    from ttd3_jax.networks import init_params, make_networks, twin_q
+
+    nets = make_networks(4, (16, 16), critic="advantage")
+    actor, critic = init_params(nets, jax.random.PRNGKey(0), 17, 4)
+    obs = jax.random.normal(jax.random.PRNGKey(1), (8, 17))
+    a, base = jax.random.uniform(jax.random.PRNGKey(2), (2, 8, 4), minval=-1, maxval=1)
+    q_base = twin_q(nets, critic, obs, base, base)
+    v_only = jax.tree.map(lambda x: x, critic)  # the same critics with A ≡ 0: Q = V(s)
+    v_only["params"]["advantage"] = jax.tree.map(jnp.zeros_like, critic["params"]["advantage"])
+    np.testing.assert_allclose(q_base, twin_q(nets, v_only, obs, a, base), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(twin_q(nets, critic, obs, a, a), q_base, rtol=1e-5, atol=1e-6)
+    g = jax.grad(lambda b: twin_q(nets, critic, obs, a, b).sum())(base)
+    np.testing.assert_array_equal(g, 0.0)
+    assert not np.allclose(twin_q(nets, critic, obs, a, base), q_base)  # A(s, a) - A(s, ā) != 0
+    with pytest.raises(ValueError, match="baseline action"):
+        twin_q(nets, critic, obs, a)
+    from ttd3_jax.buffer import Transition
+
+    batch = Transition(obs=obs, action=a, reward=jnp.ones(8), next_obs=obs, terminated=jnp.zeros(8))
+    loss, _ = critic_loss(critic, nets, actor, critic, batch, jax.random.PRNGKey(3), Hyper(), 0.2, actor)
+    assert np.isfinite(float(loss))
+    g_actor = jax.grad(actor_loss)(actor, nets, critic, batch, jax.random.PRNGKey(4), Hyper(), False)
+    assert max(float(jnp.abs(x).max()) for x in jax.tree.leaves(g_actor)) > 0
 
 
 def test_policy_selected_on_validation_tracks_is_saved_and_reloads(tmp_path):

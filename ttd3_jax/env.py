@@ -11,7 +11,8 @@ Observation at physics step k (17-D, raw units, O1)::
 
 ``obs_frame="track"`` moves the origin of the two absolute positions to p_d,k, so
 they read p_k - p_d,k and p_d,k+L - p_d,k (the policy no longer sees where in space
-the track is).
+the track is).  ``"heading"`` turns that by the vehicle's -yaw; ``"error"`` puts the
+velocity error v_k - (p_d,k+L - p_d,k)/(L dt) in slot 2 and v_k in slot 5.
 
 with L = ``lookahead_k`` (1 in the paper) and k' = k (``err_ref="current"``) or k+1.
 Reward per physics step, with e' = ||p_d,k+1 - p_k+1|| after the step (R1-R3)::
@@ -45,7 +46,7 @@ from ttd3_jax.dynamics import QuadParams, QuadState, quat_from_axis_angle, quat_
 TRACK_MODES = ("train", "validation", "spiral_rt", "los_rt")
 ERR_REFS = ("current", "next")
 ERR_COSTS = ("paper", "squared")
-OBS_FRAMES = ("world", "track", "heading")
+OBS_FRAMES = ("world", "track", "heading", "error")
 RATE_MAPS = ("linear", "cubic")
 PRESETS = ("paper", "practical")
 
@@ -72,6 +73,7 @@ class EnvConfig:
     lookahead_k: int = 1  # physics steps ahead for the observed reference point
     obs_frame: str = "world"  # "track": positions relative to p_d,k (translation invariant);
     #   "heading": "track", then vectors and q in the vehicle's heading frame (yaw invariant)
+    #   "error": [p - p_d,k, v - v̂_d, q, p_d,k+L - p_d,k, v, ||e||], v̂_d = (p_d,k+L - p_d,k)/(L dt)
     hover_centered_thrust: bool = False  # a0 = 0 means hover thrust
     rate_map: str = "linear"  # "cubic": a -> α a + (1 − α) a³ before the rate map (not in the paper)
     rate_map_slope: float = 0.1  # α, the cubic map's slope at a = 0 (1 = linear)
@@ -436,7 +438,7 @@ class TrackingEnv(Env):
         ps = ps.replace(quad=quad, k=k, wind=wind, key=key)
         obs, ps = self.observe(ps, p_ref)
         f = reward.dtype
-        a_norm2 = jnp.sum(a * a)
+        a_norm2 = _norm(a) ** 2
         metrics = dict(state.metrics)  # keep keys that wrappers added (e.g. EvalWrapper)
         metrics.update(
             {
@@ -480,7 +482,7 @@ class TrackingEnv(Env):
             step_r = step_r - c.rho_vel * jnp.linalg.norm(v_ref - quad.v)
         elif p_ref is None:
             p_ref = tr.position(track, k, c.dt)
-        e = jnp.linalg.norm(p_ref - quad.p)
+        e = _norm(p_ref - quad.p)
         finite = jnp.isfinite(e) & _finite(quad)
         step_r = step_r - c.rho1 * error_cost(c, e)
         if c.precision_bonus > 0:
@@ -495,7 +497,8 @@ class TrackingEnv(Env):
         if c.effort_hover_relative:
             a = a - hover_action(c).astype(a.dtype)
         w = jnp.asarray(self._effort_w, a.dtype)
-        return jnp.sum(w * a * a)
+        wa = w * a * a
+        return wa[0] + wa[1] + wa[2] + wa[3]
 
     def _initial_state(self, rng: jax.Array, p0: jax.Array) -> QuadState:
         c = self.config
@@ -536,10 +539,14 @@ class TrackingEnv(Env):
             p_err = p_next
         else:
             p_err = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
-        err = jnp.linalg.norm(p_err - p)
+        err = _norm(p_err - p)
         if c.obs_frame == "track":  # same 17 numbers with the origin moved to p_d,k
             p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
             parts = [p - p_now, v, q, p_ahead - p_now, p_ahead - p, err[None]]
+        elif c.obs_frame == "error":  # "track" with the velocity error pre-computed
+            p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
+            v_ref = (p_ahead - p_now) / (c.lookahead_k * c.dt)  # mean reference velocity ahead
+            parts = [p - p_now, v - v_ref, q, p_ahead - p_now, v, err[None]]
         elif c.obs_frame == "heading":  # "track", then turned by -yaw about z
             p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
             turn, q_h = _remove_yaw(q)
@@ -575,5 +582,12 @@ def _remove_yaw(q: jax.Array):
 
 
 def _finite(x: QuadState) -> jax.Array:
-    """True when every state entry is finite (a NaN or inf anywhere makes the sum non-finite)."""
-    return jnp.isfinite(sum(jnp.sum(leaf) for leaf in jax.tree.leaves(x)))
+    """True when every state entry is finite (a NaN or inf anywhere makes the sum non-finite).
+    Summed entry by entry (no reduction op), so it fuses with the rest of the step."""
+    return jnp.isfinite(sum(leaf[..., i] for leaf in jax.tree.leaves(x) for i in range(leaf.shape[-1])))
+
+
+def _norm(x: jax.Array) -> jax.Array:
+    """‖x‖ over a short last axis, written entry by entry so XLA fuses it with the step
+    instead of emitting a separate reduction per call (benchmarks/env_throughput.py)."""
+    return jnp.sqrt(sum(x[..., i] * x[..., i] for i in range(x.shape[-1])))

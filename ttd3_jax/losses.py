@@ -2,6 +2,10 @@
 
 Critic: y = r + γ (1 − terminated) min_i Q'_i(s', clip(π'(s') + clip(σ̃ ξ, −c, c), −1, 1)),
 loss Σ_i mean (y − Q_i(s, a))².  Actor: −mean Q_1(s, π(s)).
+
+With the ``advantage`` critic (networks.py) the baseline action is the current policy's
+π(s) for Q_i(s, a) and for the actor, and the target policy's π'(s') (before the
+smoothing noise) for Q'_i.
 """
 
 from __future__ import annotations
@@ -14,14 +18,16 @@ from ttd3_jax.networks import Networks, twin_q
 
 
 def critic_loss(critic_params, nets: Networks, target_actor, target_critic, batch: Transition,
-                key: jax.Array, hp, target_std) -> tuple[jax.Array, dict]:  # fmt: skip
-    """Twin-critic TD loss; ``target_std`` is σ̃ (or the shared σ under ``target_noise``)."""
-    a_next = nets.actor.apply(target_actor, batch.next_obs)
-    eps = jnp.clip(target_std * jax.random.normal(key, a_next.shape), -hp.target_clip, hp.target_clip)
-    a_next = jnp.clip(a_next + eps, -1.0, 1.0)
-    q_next = jnp.min(twin_q(nets, target_critic, batch.next_obs, a_next), axis=0)
+                key: jax.Array, hp, target_std, actor=None) -> tuple[jax.Array, dict]:  # fmt: skip
+    """Twin-critic TD loss; ``target_std`` is σ̃ (or the shared σ under ``target_noise``);
+    ``actor``: the current actor's params (needed by the ``advantage`` critic only)."""
+    pi_next = nets.actor.apply(target_actor, batch.next_obs)
+    eps = jnp.clip(target_std * jax.random.normal(key, pi_next.shape), -hp.target_clip, hp.target_clip)
+    a_next = jnp.clip(pi_next + eps, -1.0, 1.0)
+    base = nets.actor.apply(actor, batch.obs) if nets.needs_base else None
+    q_next = jnp.min(twin_q(nets, target_critic, batch.next_obs, a_next, pi_next), axis=0)
     y = jax.lax.stop_gradient(batch.reward + hp.gamma * (1.0 - batch.terminated) * q_next)
-    q = twin_q(nets, critic_params, batch.obs, batch.action)
+    q = twin_q(nets, critic_params, batch.obs, batch.action, base)
     loss = jnp.sum(jnp.mean((q - y) ** 2, axis=-1))
     return loss, {"q_mean": jnp.mean(q[0])}
 
@@ -36,7 +42,7 @@ def actor_loss(
     actor's work)."""
     obs = batch.obs
     a = nets.actor.apply(actor_params, obs)
-    q1 = twin_q(nets, jax.tree.map(lambda p: p[:1], critic_params), obs, a)[0]
+    q1 = twin_q(nets, jax.tree.map(lambda p: p[:1], critic_params), obs, a, a)[0]
     if not caps:
         return -jnp.mean(q1)
     a_next = nets.actor.apply(actor_params, batch.next_obs)

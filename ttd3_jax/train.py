@@ -33,7 +33,7 @@ from ttd3_jax.env import PRESETS as ENV_PRESETS
 from ttd3_jax.env import TrackingEnv, make_config
 from ttd3_jax.evaluate import Controller, evaluate_on_tracks, test_tracks
 from ttd3_jax.losses import actor_loss, critic_loss
-from ttd3_jax.networks import Networks, init_params, make_networks
+from ttd3_jax.networks import CRITICS, Networks, init_params, make_networks
 from ttd3_jax.trajectories import validation_tracks
 
 QUADROTOR = "quadrotor"
@@ -88,6 +88,7 @@ class TrainConfig:
     policy_delay: int = 2  # d
     lr_schedule: str = "constant"  # "linear" / "cosine": learning rates decay to 0 over the run
     hidden: tuple[int, ...] = (256, 256)
+    critic: str = "mlp"  # "mlp" (the paper) | "advantage": Q = V(s) + A(s, a) − A(s, π(s))
     normalize_obs: bool = False  # running mean/std normalisation of observations (nets' input)
     epochs: int = 50  # progress / eval / checkpoint points
     eval_episodes: int = 10  # Brax envs: deterministic episodes per evaluation
@@ -131,6 +132,7 @@ def validate(c: TrainConfig) -> None:
     need(c.env_preset in ENV_PRESETS, f"env_preset must be one of {ENV_PRESETS}, got {c.env_preset!r}")
     need(c.backend in BACKENDS, f"backend must be one of {BACKENDS}, got {c.backend!r}")
     need(c.algo in ALGOS, f"algo must be one of {ALGOS}, got {c.algo!r}")
+    need(c.critic in CRITICS, f"critic must be one of {CRITICS}, got {c.critic!r}")
     need(c.lr_schedule in LR_SCHEDULES, f"lr_schedule must be one of {LR_SCHEDULES}, got {c.lr_schedule!r}")
     need(
         c.target_noise in TARGET_NOISES,
@@ -286,7 +288,7 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
     spec = make_env(c)
     env, n = spec.env, c.num_envs
     noise_cfg = c.noise
-    nets = make_networks(spec.action_size, c.hidden)
+    nets = make_networks(spec.action_size, c.hidden, c.critic)
     v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
 
     def stats(ts: TrainState):
@@ -371,7 +373,7 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
             )
         target_std = hp.target_sigma if c.target_noise == "fixed" else nz.std(noise_cfg, ts.noise.sigma)
         (c_loss, aux), grads = jax.value_and_grad(critic_loss, has_aux=True)(
-            ts.critic, nets, ts.target_actor, ts.target_critic, batch, k_target, hp, target_std
+            ts.critic, nets, ts.target_actor, ts.target_critic, batch, k_target, hp, target_std, ts.actor
         )
         frac = lr_fraction(c, ts.n_upd)
         critic_opt = _with_lr(ts.critic_opt, hp.lr_critic * frac)
