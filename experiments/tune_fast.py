@@ -83,6 +83,12 @@ VARIANTS = {
     ),  # fmt: skip
     "hover_only_gamma_0.95": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4))}, {}, {"gamma": 0.95}),
     "hover_only_effort_10x": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4)), "rho2": 0.1}, {}, {}),
+    "hover_only_nstep_5": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4))}, {"n_step": 5}, {}),
+    "nstep_5": ({}, {"n_step": 5}, {}),
+    "nstep_10": ({}, {"n_step": 10}, {}),
+    "critic_layer_norm": ({}, {"critic_layer_norm": True}, {}),
+    "actor_lr_5e-5": ({}, {}, {"lr_actor": 5e-5}),
+    "tau_0.001": ({}, {}, {"tau": 0.001}),
     "repeat_20": ({"action_repeat": 20, "crash_penalty": 2000.0}, {}, {}),
     "repeat_20_gamma_0.98": ({"action_repeat": 20, "crash_penalty": 1000.0}, {}, {"gamma": 0.98}),
     "small_init": ({"init_pos": 0.01, "init_vel": 0.02, "init_tilt_deg": 1.0}, {}, {}),

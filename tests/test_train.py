@@ -141,7 +141,7 @@ def test_ring_buffer_insert_wraps_and_samples_filled_rows():
         n = 4
         return rb.Transition(
             obs=jnp.full((n, 2), v), action=jnp.full((n, 1), v), reward=jnp.arange(n) + v,
-            next_obs=jnp.full((n, 2), v), terminated=jnp.zeros(n),
+            next_obs=jnp.full((n, 2), v), terminated=jnp.zeros(n), done=jnp.zeros(n),
         )  # fmt: skip
 
     buf = rb.insert(buf, batch(0.0))
@@ -151,7 +151,42 @@ def test_ring_buffer_insert_wraps_and_samples_filled_rows():
     buf = rb.insert(rb.insert(buf, batch(10.0)), batch(20.0))  # wraps: overwrites rows 0-3
     assert int(buf.size) == 8 and int(buf.pos) == 4
     np.testing.assert_array_equal(buf.data.reward, [20, 21, 22, 23, 10, 11, 12, 13])
-    assert rb.transition_bytes(17, 4) == 4 * (2 * 17 + 4 + 2)
+    assert rb.transition_bytes(17, 4) == 4 * (2 * 17 + 4 + 3)
+
+
+def test_nstep_returns_stop_at_episode_ends_and_bootstrap_through_truncation():
+    """Two envs, 6 steps. Env 0: rewards 1..6, truncated after step 2 (a time limit).
+    Env 1: rewards 10, 20, ..., terminated (crash) at step 3."""
+    n_envs, steps, gamma = 2, 6, 0.5
+    buf = rb.init(12, obs_size=1, action_size=1)
+    for t in range(steps):
+        r = jnp.array([t + 1.0, 10.0 * (t + 1)])
+        term = jnp.array([0.0, float(t == 3)])
+        done = jnp.array([float(t == 2), float(t == 3)])
+        nxt = jnp.array([[100.0 + t], [200.0 + t]])  # next_obs tags: env, step
+        buf = rb.insert(buf, rb.Transition(obs=nxt - 1, action=jnp.zeros((2, 1)), reward=r, next_obs=nxt,
+                                           terminated=term, done=done))  # fmt: skip
+    first, ns = rb.sample_nstep(buf, jax.random.PRNGKey(0), 512, 3, n_envs, gamma)
+    got = {}
+    for o, g, nx, d in zip(first.next_obs[:, 0], ns.reward, ns.next_obs[:, 0], ns.discount, strict=True):
+        got[int(o)] = (float(g), int(nx), float(d))
+    assert set(got) == {100, 101, 102, 103, 200, 201, 202, 203}  # starts with 2 successors stored
+    assert got[100] == (1 + 0.5 * 2 + 0.25 * 3, 102, 0.125)  # reaches the truncation step
+    assert got[101] == (2 + 0.5 * 3, 102, 0.25)  # stops there, bootstraps from its next_obs
+    assert got[102] == (3.0, 102, 0.5)
+    assert got[103] == (4 + 0.5 * 5 + 0.25 * 6, 105, 0.125)  # the next episode, 3 full steps
+    assert got[201] == (20 + 0.5 * 30 + 0.25 * 40, 203, 0.0)  # terminated: no bootstrap
+    assert got[203] == (40.0, 203, 0.0)
+    with pytest.raises(ValueError, match="n_step"):
+        tiny(n_step=4, warmup_transitions=16 * 3)
+
+
+def test_nstep_trainer_runs_and_learns_finite():
+    c = tiny(n_step=3)
+    t = make_trainer(c)
+    ts = jax.jit(t.init)(seed_keys(c)[0], c.hp)
+    ts, m = jax.jit(t.epoch)(ts, c.hp)
+    assert np.isfinite(float(m["critic_loss"])) and np.isfinite(float(m["actor_loss"]))
 
 
 # --------------------------------------------------------------------------- trainer
@@ -415,6 +450,7 @@ def test_caps_terms_are_compiled_in_only_when_the_config_sets_them():
         reward=jnp.zeros(32),
         next_obs=jax.random.normal(k[1], (32, 17)),
         terminated=jnp.zeros(32),
+        done=jnp.zeros(32),
     )
     plain = float(actor_loss(actor, nets, critic, batch, k[2], Hyper(), caps=False))
     assert float(actor_loss(actor, nets, critic, batch, k[2], Hyper(), caps=True)) == pytest.approx(
@@ -487,7 +523,8 @@ def test_advantage_critic_is_value_plus_centred_advantage():
         twin_q(nets, critic, obs, a)
     from ttd3_jax.buffer import Transition
 
-    batch = Transition(obs=obs, action=a, reward=jnp.ones(8), next_obs=obs, terminated=jnp.zeros(8))
+    z = jnp.zeros(8)
+    batch = Transition(obs=obs, action=a, reward=jnp.ones(8), next_obs=obs, terminated=z, done=z)
     loss, _ = critic_loss(critic, nets, actor, critic, batch, jax.random.PRNGKey(3), Hyper(), 0.2, actor)
     assert np.isfinite(float(loss))
     g_actor = jax.grad(actor_loss)(actor, nets, critic, batch, jax.random.PRNGKey(4), Hyper(), False)

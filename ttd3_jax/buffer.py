@@ -3,6 +3,10 @@
 The capacity is a multiple of the number of parallel envs, so every insert is one
 ``dynamic_update_slice`` of ``num_envs`` rows at ``pos`` (no wrap-around split), and
 sampling is one ``randint`` gather.  Nothing is O(capacity) per step.
+
+Row ``r`` holds env ``r % num_envs``; that env's next transition is at row
+``r + num_envs`` (mod capacity).  :func:`sample_nstep` uses this to build n-step
+returns with ``n`` gathers and no extra storage.
 """
 
 from __future__ import annotations
@@ -23,6 +27,16 @@ class Transition:
     reward: jax.Array  # (...,)
     next_obs: jax.Array  # (..., n_obs)
     terminated: jax.Array  # (...,) 0.0 or 1.0
+    done: jax.Array  # (...,) 1.0 when the episode ended here (terminated or truncated)
+
+
+@struct.dataclass
+class NStep:
+    """The n-step part of a minibatch: y = reward + discount · Q'(next_obs, π'(next_obs))."""
+
+    reward: jax.Array  # (B,) Σ_{j<m} γ^j r_j, m ≤ n steps, stopping at the episode's end
+    next_obs: jax.Array  # (B, n_obs) the observation after those m steps
+    discount: jax.Array  # (B,) γ^m, or 0 when the episode terminated within them
 
 
 @struct.dataclass
@@ -38,12 +52,12 @@ class ReplayBuffer:
 
 def transition_bytes(obs_size: int, action_size: int, itemsize: int = 4) -> int:
     """Bytes per stored transition (float32 by default)."""
-    return itemsize * (2 * obs_size + action_size + 2)
+    return itemsize * (2 * obs_size + action_size + 3)
 
 
 def init(capacity: int, obs_size: int, action_size: int, dtype=jnp.float32) -> ReplayBuffer:
     z = lambda *shape: jnp.zeros((capacity, *shape), dtype)
-    data = Transition(z(obs_size), z(action_size), z(), z(obs_size), z())
+    data = Transition(z(obs_size), z(action_size), z(), z(obs_size), z(), z())
     return ReplayBuffer(data=data, pos=jnp.zeros((), jnp.int32), size=jnp.zeros((), jnp.int32))
 
 
@@ -63,3 +77,27 @@ def sample(buf: ReplayBuffer, key: jax.Array, batch_size: int) -> Transition:
     """Uniform sample with replacement from the filled rows."""
     idx = jax.random.randint(key, (batch_size,), 0, jnp.maximum(buf.size, 1))
     return jax.tree.map(lambda d: d[idx], buf.data)
+
+
+def sample_nstep(buf: ReplayBuffer, key: jax.Array, batch_size: int, n: int, num_envs: int, gamma):
+    """Uniform sample of start rows whose next ``n - 1`` transitions (same env) are stored,
+    as the 1-step :class:`Transition` of each start row and its :class:`NStep` return.
+
+    Accumulation stops at the first ``done`` (the next episode's rows are not used); the
+    return then bootstraps from that step's ``next_obs`` unless it ``terminated``.  With
+    ``n = 1`` this is :func:`sample` plus ``discount = γ (1 − terminated)``."""
+    span = (n - 1) * num_envs  # the newest start rows lack successors
+    oldest = jnp.where(buf.size < buf.capacity, 0, buf.pos)
+    off = jax.random.randint(key, (batch_size,), 0, jnp.maximum(buf.size - span, 1))
+    rows = (oldest + off) % buf.capacity
+    first = jax.tree.map(lambda d: d[rows], buf.data)
+    ret, disc = first.reward, gamma * (1.0 - first.terminated)
+    alive, boot = 1.0 - first.done, first.next_obs
+    for j in range(1, n):  # static, small
+        t = jax.tree.map(lambda d, j=j: d[(rows + j * num_envs) % buf.capacity], buf.data)
+        g = gamma**j
+        ret = ret + alive * g * t.reward
+        disc = jnp.where(alive > 0, g * gamma * (1.0 - t.terminated), disc)
+        boot = jnp.where(alive[:, None] > 0, t.next_obs, boot)
+        alive = alive * (1.0 - t.done)
+    return first, NStep(reward=ret, next_obs=boot, discount=disc)

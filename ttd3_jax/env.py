@@ -438,7 +438,7 @@ class TrackingEnv(Env):
         ps = ps.replace(quad=quad, k=k, wind=wind, key=key)
         obs, ps = self.observe(ps, p_ref)
         f = reward.dtype
-        a_norm2 = _norm(a) ** 2
+        a_norm2 = jnp.sum(a * a)
         metrics = dict(state.metrics)  # keep keys that wrappers added (e.g. EvalWrapper)
         metrics.update(
             {
@@ -482,7 +482,7 @@ class TrackingEnv(Env):
             step_r = step_r - c.rho_vel * jnp.linalg.norm(v_ref - quad.v)
         elif p_ref is None:
             p_ref = tr.position(track, k, c.dt)
-        e = _norm(p_ref - quad.p)
+        e = jnp.linalg.norm(p_ref - quad.p)
         finite = jnp.isfinite(e) & _finite(quad)
         step_r = step_r - c.rho1 * error_cost(c, e)
         if c.precision_bonus > 0:
@@ -497,8 +497,7 @@ class TrackingEnv(Env):
         if c.effort_hover_relative:
             a = a - hover_action(c).astype(a.dtype)
         w = jnp.asarray(self._effort_w, a.dtype)
-        wa = w * a * a
-        return wa[0] + wa[1] + wa[2] + wa[3]
+        return jnp.sum(w * a * a)
 
     def _initial_state(self, rng: jax.Array, p0: jax.Array) -> QuadState:
         c = self.config
@@ -539,7 +538,7 @@ class TrackingEnv(Env):
             p_err = p_next
         else:
             p_err = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
-        err = _norm(p_err - p)
+        err = jnp.linalg.norm(p_err - p)
         if c.obs_frame == "track":  # same 17 numbers with the origin moved to p_d,k
             p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
             parts = [p - p_now, v, q, p_ahead - p_now, p_ahead - p, err[None]]
@@ -582,12 +581,5 @@ def _remove_yaw(q: jax.Array):
 
 
 def _finite(x: QuadState) -> jax.Array:
-    """True when every state entry is finite (a NaN or inf anywhere makes the sum non-finite).
-    Summed entry by entry (no reduction op), so it fuses with the rest of the step."""
-    return jnp.isfinite(sum(leaf[..., i] for leaf in jax.tree.leaves(x) for i in range(leaf.shape[-1])))
-
-
-def _norm(x: jax.Array) -> jax.Array:
-    """‖x‖ over a short last axis, written entry by entry so XLA fuses it with the step
-    instead of emitting a separate reduction per call (benchmarks/env_throughput.py)."""
-    return jnp.sqrt(sum(x[..., i] * x[..., i] for i in range(x.shape[-1])))
+    """True when every state entry is finite (a NaN or inf anywhere makes the sum non-finite)."""
+    return jnp.isfinite(sum(jnp.sum(leaf) for leaf in jax.tree.leaves(x)))

@@ -1,7 +1,9 @@
 """TD3 losses (Fujimoto et al. 2018; spec §2.4).
 
 Critic: y = r + γ (1 − terminated) min_i Q'_i(s', clip(π'(s') + clip(σ̃ ξ, −c, c), −1, 1)),
-loss Σ_i mean (y − Q_i(s, a))².  Actor: −mean Q_1(s, π(s)).
+loss Σ_i mean (y − Q_i(s, a))².  Actor: −mean Q_1(s, π(s)).  With n-step returns
+(``TrainConfig.n_step``, not in the paper) y = Σ_{j<m} γ^j r_j + γ^m (1 − terminated) min_i Q'_i
+at the observation m ≤ n steps on.
 
 With the ``advantage`` critic (networks.py) the baseline action is the current policy's
 π(s) for Q_i(s, a) and for the actor, and the target policy's π'(s') (before the
@@ -13,20 +15,25 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ttd3_jax.buffer import Transition
+from ttd3_jax.buffer import NStep, Transition
 from ttd3_jax.networks import Networks, twin_q
 
 
 def critic_loss(critic_params, nets: Networks, target_actor, target_critic, batch: Transition,
-                key: jax.Array, hp, target_std, actor=None) -> tuple[jax.Array, dict]:  # fmt: skip
+                key: jax.Array, hp, target_std, actor=None, nstep: NStep | None = None
+                ) -> tuple[jax.Array, dict]:  # fmt: skip
     """Twin-critic TD loss; ``target_std`` is σ̃ (or the shared σ under ``target_noise``);
-    ``actor``: the current actor's params (needed by the ``advantage`` critic only)."""
-    pi_next = nets.actor.apply(target_actor, batch.next_obs)
+    ``actor``: the current actor's params (needed by the ``advantage`` critic only);
+    ``nstep``: n-step returns (buffer.sample_nstep), y = G + discount · min_i Q'_i."""
+    if nstep is None:
+        disc = hp.gamma * (1.0 - batch.terminated)
+        nstep = NStep(reward=batch.reward, next_obs=batch.next_obs, discount=disc)
+    pi_next = nets.actor.apply(target_actor, nstep.next_obs)
     eps = jnp.clip(target_std * jax.random.normal(key, pi_next.shape), -hp.target_clip, hp.target_clip)
     a_next = jnp.clip(pi_next + eps, -1.0, 1.0)
     base = nets.actor.apply(actor, batch.obs) if nets.needs_base else None
-    q_next = jnp.min(twin_q(nets, target_critic, batch.next_obs, a_next, pi_next), axis=0)
-    y = jax.lax.stop_gradient(batch.reward + hp.gamma * (1.0 - batch.terminated) * q_next)
+    q_next = jnp.min(twin_q(nets, target_critic, nstep.next_obs, a_next, pi_next), axis=0)
+    y = jax.lax.stop_gradient(nstep.reward + nstep.discount * q_next)
     q = twin_q(nets, critic_params, batch.obs, batch.action, base)
     loss = jnp.sum(jnp.mean((q - y) ** 2, axis=-1))
     return loss, {"q_mean": jnp.mean(q[0])}

@@ -26,16 +26,19 @@ import jax.numpy as jnp
 
 
 class MLP(nn.Module):
-    """Dense ReLU layers, then a linear output (tanh-squashed if ``squash``)."""
+    """Dense ReLU layers, then a linear output (tanh-squashed if ``squash``); with
+    ``layer_norm``, each hidden layer is Dense → LayerNorm → ReLU."""
 
     hidden: Sequence[int]
     out: int
     squash: bool = False
+    layer_norm: bool = False
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         for width in self.hidden:
-            x = nn.relu(nn.Dense(width)(x))
+            x = nn.Dense(width)(x)
+            x = nn.relu(nn.LayerNorm()(x) if self.layer_norm else x)
         x = nn.Dense(self.out)(x)
         return jnp.tanh(x) if self.squash else x
 
@@ -44,11 +47,12 @@ class AdvantageCritic(nn.Module):
     """Q(s, a) = V(s) + A(s, a) − A(s, base): a value MLP and an advantage MLP."""
 
     hidden: Sequence[int]
+    layer_norm: bool = False
 
     @nn.compact
     def __call__(self, obs, action, base):
-        adv = MLP(self.hidden, 1, name="advantage")
-        value = MLP(self.hidden, 1, name="value")(obs)[..., 0]
+        adv = MLP(self.hidden, 1, name="advantage", layer_norm=self.layer_norm)
+        value = MLP(self.hidden, 1, name="value", layer_norm=self.layer_norm)(obs)[..., 0]
         base = jax.lax.stop_gradient(base)
         a_taken = adv(jnp.concatenate([obs, action], -1))[..., 0]
         return value + a_taken - adv(jnp.concatenate([obs, base], -1))[..., 0]
@@ -67,10 +71,15 @@ class Networks(NamedTuple):
         return isinstance(self.critic, AdvantageCritic)
 
 
-def make_networks(action_size: int, hidden: Sequence[int] = (256, 256), critic: str = "mlp") -> Networks:
+def make_networks(
+    action_size: int, hidden: Sequence[int] = (256, 256), critic: str = "mlp", critic_layer_norm: bool = False
+) -> Networks:
+    """``critic_layer_norm``: LayerNorm after each hidden Dense of the critics (not in the
+    paper; Ball et al. 2023 and Nauman et al. 2024 use it to steady TD learning)."""
     if critic not in CRITICS:
         raise ValueError(f"unknown critic kind {critic!r}; allowed: {CRITICS}")
-    q = MLP(tuple(hidden), 1) if critic == "mlp" else AdvantageCritic(tuple(hidden))
+    h, ln = tuple(hidden), critic_layer_norm
+    q = MLP(h, 1, layer_norm=ln) if critic == "mlp" else AdvantageCritic(h, layer_norm=ln)
     return Networks(actor=MLP(tuple(hidden), action_size, squash=True), critic=q)
 
 

@@ -86,9 +86,11 @@ class TrainConfig:
     batch_size: int = 256
     updates_per_step: int = 20  # G, gradient updates per vector env step
     policy_delay: int = 2  # d
+    n_step: int = 1  # n-step returns in the critic target (1 = TD3 as published)
     lr_schedule: str = "constant"  # "linear" / "cosine": learning rates decay to 0 over the run
     hidden: tuple[int, ...] = (256, 256)
     critic: str = "mlp"  # "mlp" (the paper) | "advantage": Q = V(s) + A(s, a) − A(s, π(s))
+    critic_layer_norm: bool = False  # LayerNorm in the critics' hidden layers (not in the paper)
     normalize_obs: bool = False  # running mean/std normalisation of observations (nets' input)
     epochs: int = 50  # progress / eval / checkpoint points
     eval_episodes: int = 10  # Brax envs: deterministic episodes per evaluation
@@ -139,7 +141,8 @@ def validate(c: TrainConfig) -> None:
         f"target_noise must be one of {TARGET_NOISES}, got {c.target_noise!r}",
     )
     for name in ("num_envs", "total_transitions", "buffer_size", "batch_size", "updates_per_step",
-                 "policy_delay", "epochs", "eval_episodes", "episode_length", "num_seeds"):  # fmt: skip
+                 "policy_delay", "n_step", "epochs", "eval_episodes", "episode_length",
+                 "num_seeds"):  # fmt: skip
         v = getattr(c, name)
         need(
             isinstance(v, int) and not isinstance(v, bool) and v >= 1,
@@ -153,6 +156,9 @@ def validate(c: TrainConfig) -> None:
     need(
         c.batch_size <= c.buffer_size, f"batch_size ({c.batch_size}) must be <= buffer_size ({c.buffer_size})"
     )
+    need(c.warmup_transitions > (c.n_step - 1) * c.num_envs,
+         f"warmup_transitions ({c.warmup_transitions}) must exceed (n_step - 1) * num_envs "
+         f"({(c.n_step - 1) * c.num_envs}) so that n-step windows exist when learning starts")  # fmt: skip
     need(c.warmup_transitions >= c.batch_size,
          f"warmup_transitions ({c.warmup_transitions}) must be >= batch_size ({c.batch_size}) so the "
          "first minibatch is drawn from a filled buffer")  # fmt: skip
@@ -288,7 +294,7 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
     spec = make_env(c)
     env, n = spec.env, c.num_envs
     noise_cfg = c.noise
-    nets = make_networks(spec.action_size, c.hidden, c.critic)
+    nets = make_networks(spec.action_size, c.hidden, c.critic, c.critic_layer_norm)
     v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
 
     def stats(ts: TrainState):
@@ -309,6 +315,7 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
             reward=hp.reward_scale * nxt.reward,
             next_obs=nxt.obs,
             terminated=terminated,
+            done=nxt.done,
         )
         done = nxt.done > 0
         ep_return = ts.ep_return + nxt.reward
@@ -366,14 +373,20 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
         at n_upd ≡ 0 (mod d), so "every d-th update" is decided by ``j`` alone and the
         ``lax.cond`` stays a branch under ``vmap`` instead of becoming a select."""
         k_batch, k_target, k_smooth = jax.random.split(key, 3)
-        batch = rb.sample(ts.buffer, k_batch, c.batch_size)
+        if c.n_step == 1:
+            batch, nstep = rb.sample(ts.buffer, k_batch, c.batch_size), None
+        else:
+            batch, nstep = rb.sample_nstep(ts.buffer, k_batch, c.batch_size, c.n_step, n, hp.gamma)
         if c.normalize_obs:
             batch = batch.replace(
                 obs=nrm.apply(ts.obs_stats, batch.obs), next_obs=nrm.apply(ts.obs_stats, batch.next_obs)
             )
+            if nstep is not None:
+                nstep = nstep.replace(next_obs=nrm.apply(ts.obs_stats, nstep.next_obs))
         target_std = hp.target_sigma if c.target_noise == "fixed" else nz.std(noise_cfg, ts.noise.sigma)
+        targets = (ts.target_actor, ts.target_critic)
         (c_loss, aux), grads = jax.value_and_grad(critic_loss, has_aux=True)(
-            ts.critic, nets, ts.target_actor, ts.target_critic, batch, k_target, hp, target_std, ts.actor
+            ts.critic, nets, *targets, batch, k_target, hp, target_std, ts.actor, nstep
         )
         frac = lr_fraction(c, ts.n_upd)
         critic_opt = _with_lr(ts.critic_opt, hp.lr_critic * frac)
