@@ -83,6 +83,7 @@ VARIANTS = {
     ),  # fmt: skip
     "hover_only_gamma_0.95": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4))}, {}, {"gamma": 0.95}),
     "hover_only_effort_10x": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4)), "rho2": 0.1}, {}, {}),
+    "hover_only_no_wind": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4)), "wind_sigma": 0.0}, {}, {}),
     "hover_only_nstep_5": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4))}, {"n_step": 5}, {}),
     "nstep_5": ({}, {"n_step": 5}, {}),
     "nstep_10": ({}, {"n_step": 10}, {}),
