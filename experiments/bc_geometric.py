@@ -12,8 +12,15 @@ data covers small deviations, the label is the controller's clean action.  The a
 fitted by mean squared error with Adam (cosine-decayed from ``--lr``) and evaluated on
 Spiral-RT and LOS-RT (seed 0) after each round of ``--steps-per-round`` steps.
 
-    python experiments/bc_geometric.py               # about 1.5 min on 2 CPU cores
+    python experiments/bc_geometric.py               # about 1 min on 2 CPU cores
+    python experiments/bc_geometric.py --then-ttd3 3 7   # then T-TD3 from the clone (4 min)
     python experiments/bc_geometric.py --quick       # smoke run (CI)
+
+``--then-ttd3 F A`` then hands the clone to the ``fast`` T-TD3 trainer, after its usual
+random warm-up: ``F`` epochs with the actor frozen (actor learning rate 0, so the critics
+learn the clone's own values on the clone's own data), then ``A`` epochs of normal T-TD3,
+with an evaluation after each epoch.  The input normalisation is frozen at the
+demonstration data's statistics, so that only the actor updates can change the policy.
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ import optax
 
 from ttd3_jax import evaluate as E
 from ttd3_jax import normalize as nrm
+from ttd3_jax import train as T
 from ttd3_jax.env import TrackingEnv, make_config
 from ttd3_jax.networks import make_networks
 from ttd3_jax.train import policy_controller
@@ -70,10 +78,16 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=1024)
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--then-ttd3", type=int, nargs=2, metavar=("FROZEN", "ACTOR"), default=None,
+                    help="then train the clone with the fast T-TD3 preset: FROZEN epochs critic-only, "
+                    "ACTOR epochs in full")  # fmt: skip
     ap.add_argument("--quick", action="store_true", help="tiny sizes, to keep the script alive in CI")
     args = ap.parse_args(argv)
     if args.quick:
         args.envs, args.rounds, args.steps_per_round = 8, 1, 50
+        args.then_ttd3 = (1, 1) if args.then_ttd3 else None
+    if args.then_ttd3 and min(args.then_ttd3) < 0:
+        ap.error(f"--then-ttd3 epochs must be >= 0, got {args.then_ttd3}")
     for name in ("envs", "rounds", "steps_per_round", "batch"):
         if getattr(args, name) < 1:
             ap.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
@@ -113,7 +127,39 @@ def main(argv=None) -> int:
         steps, wall = (r + 1) * args.steps_per_round, time.perf_counter() - t0
         print(f"{r + 1:>5} {steps:>9} {float(loss):>9.2e} {sp:>10.2f} {los:>9.2f} {wall:>7.1f}")
     print("paper T-TD3: Spiral-RT 25.99  LOS-RT 398.74")
+    if args.then_ttd3:
+        then_ttd3(params, stats, tuple(args.hidden), *args.then_ttd3, quick=args.quick, t0=t0)
     return 0
+
+
+def then_ttd3(actor, stats, hidden, frozen: int, full: int, quick: bool, t0: float) -> None:
+    """The clone as the starting actor of the ``fast`` T-TD3 trainer (see the docstring)."""
+    over = dict(hidden=hidden)
+    if quick:
+        over.update(num_envs=16, total_transitions=16 * 40, warmup_transitions=16 * 8, buffer_size=16 * 64,
+                    batch_size=64, updates_per_step=2, epochs=2)  # fmt: skip
+    c = T.preset("fast", **over)
+    t = T.make_trainer(c)
+    ts = jax.jit(t.init)(T.seed_keys(c)[0], c.hp)
+    big = 1e12  # a count this large freezes the running statistics
+    frozen_stats = nrm.ObsStats(count=jnp.asarray(big), mean=stats.mean, m2=stats.m2 / stats.count * big)
+    ts = ts.replace(actor=actor, target_actor=actor, actor_opt=T._adam(c.hp.lr_actor).init(actor),
+                    obs_stats=frozen_stats)  # fmt: skip
+    evaluate, epoch = jax.jit(t.evaluate), jax.jit(t.epoch)
+    no_actor = c.hp.replace(lr_actor=0.0)
+    print(f"T-TD3 (fast preset) from the clone: {frozen} epoch(s) critic-only, then {full} in full")
+    print(f"{'epoch':>5} {'actor':>6} {'σ':>9} {'Spiral-RT':>10} {'LOS-RT':>9} {'val':>9} {'wall s':>7}")
+
+    def show(e, actor_state, sigma, m):
+        errs = (float(m[f"{k}_tracking_error"]) for k in ("spiral", "los", "val"))
+        print("{:>5} {:>6} {:>9.2e} {:>10.2f} {:>9.2f} {:>9.2f}".format(e, actor_state, float(sigma), *errs),
+              f"{time.perf_counter() - t0:>7.1f}")  # fmt: skip
+
+    show(0, "-", ts.noise.sigma, jax.device_get(evaluate(ts)))
+    for e in range(frozen + full):
+        learn = e >= frozen
+        ts, mm = epoch(ts, c.hp if learn else no_actor)
+        show(e + 1, "on" if learn else "frozen", mm["sigma"], jax.device_get(evaluate(ts)))
 
 
 if __name__ == "__main__":
