@@ -35,9 +35,7 @@ from ttd3_jax.env import TrackingEnv, action_to_control, make_config
 
 
 def rk4_case(cfg, n_envs, n_steps):
-    keys = jax.random.split(jax.random.PRNGKey(0), n_envs)
-    env = TrackingEnv(dataclasses.replace(cfg, wind_sigma=0.0))
-    quad0 = jax.vmap(env.reset)(keys).pipeline_state.quad
+    quad0 = _reset(dataclasses.replace(cfg, wind_sigma=0.0), n_envs)[1].pipeline_state.quad
     a = jax.random.uniform(jax.random.PRNGKey(1), (n_envs, 4), minval=-0.05, maxval=0.05)
     u = action_to_control(cfg, a.at[:, 0].add(0.4715))
 
@@ -49,10 +47,14 @@ def rk4_case(cfg, n_envs, n_steps):
     return run, quad0
 
 
-def lookup_case(cfg, n_envs, n_steps):
+def _reset(cfg, n_envs):
+    """The env and ``n_envs`` reset states (fixed seed)."""
     env = TrackingEnv(cfg)
-    keys = jax.random.split(jax.random.PRNGKey(0), n_envs)
-    s0 = jax.jit(jax.vmap(env.reset))(keys)
+    return env, jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), n_envs))
+
+
+def lookup_case(cfg, n_envs, n_steps):
+    _, s0 = _reset(cfg, n_envs)
     track = s0.pipeline_state.track
     lookup = jax.vmap(lambda tk, k: tr.position(tk, k, cfg.dt))
 
@@ -68,9 +70,7 @@ def lookup_case(cfg, n_envs, n_steps):
 
 
 def env_case(cfg, n_envs, n_steps):
-    env = TrackingEnv(cfg)
-    keys = jax.random.split(jax.random.PRNGKey(0), n_envs)
-    s0 = jax.jit(jax.vmap(env.reset))(keys)
+    env, s0 = _reset(cfg, n_envs)
     a = jax.random.uniform(jax.random.PRNGKey(1), (n_envs, 4), minval=-0.05, maxval=0.05)
     a = a.at[:, 0].add(0.4715)
 

@@ -93,8 +93,11 @@ def sample_nstep(buf: ReplayBuffer, key: jax.Array, batch_size: int, n: int, num
     first = jax.tree.map(lambda d: d[rows], buf.data)
     ret, disc = first.reward, gamma * (1.0 - first.terminated)
     alive, boot = 1.0 - first.done, first.next_obs
-    for j in range(1, n):  # static, small
-        t = jax.tree.map(lambda d, j=j: d[(rows + j * num_envs) % buf.capacity], buf.data)
+    d = buf.data
+    for j in range(1, n):  # static, small; the successors' obs and action are not needed
+        r = (rows + j * num_envs) % buf.capacity
+        t = d.replace(obs=None, action=None, reward=d.reward[r], next_obs=d.next_obs[r],
+                      terminated=d.terminated[r], done=d.done[r])  # fmt: skip
         g = gamma**j
         ret = ret + alive * g * t.reward
         disc = jnp.where(alive > 0, g * gamma * (1.0 - t.terminated), disc)

@@ -539,15 +539,14 @@ class TrackingEnv(Env):
         else:
             p_err = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
         err = jnp.linalg.norm(p_err - p)
-        if c.obs_frame == "track":  # same 17 numbers with the origin moved to p_d,k
+        if c.obs_frame != "world":  # the relative frames put the origin at p_d,k
             p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
+        if c.obs_frame == "track":  # same 17 numbers with the origin moved to p_d,k
             parts = [p - p_now, v, q, p_ahead - p_now, p_ahead - p, err[None]]
         elif c.obs_frame == "error":  # "track" with the velocity error pre-computed
-            p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
             v_ref = (p_ahead - p_now) / (c.lookahead_k * c.dt)  # mean reference velocity ahead
             parts = [p - p_now, v - v_ref, q, p_ahead - p_now, v, err[None]]
         elif c.obs_frame == "heading":  # "track", then turned by -yaw about z
-            p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
             turn, q_h = _remove_yaw(q)
             q_h = jnp.where(q_h[0] < 0, -q_h, q_h) if c.canonical_q_obs else q_h
             vecs = (p - p_now, v, p_ahead - p_now, p_ahead - p)
