@@ -170,9 +170,9 @@ def build_ours(env: str, hidden: int, steps: int, num_envs: int = 1, utd: int = 
     from ttd3_jax import train as T
 
     if preset_fast:  # the fast preset as it is (64 envs x 16 updates, 64-64, practical env)
-        c = T.preset("fast", epochs=1, warmup_transitions=4096, buffer_size=BUFFER)
+        c = T.preset("fast_dpg", epochs=1, warmup_transitions=4096, buffer_size=BUFFER)
         c = T.preset(
-            "fast",
+            "fast_dpg",
             epochs=1,
             warmup_transitions=4096,
             buffer_size=BUFFER,

@@ -7,8 +7,8 @@ first case of each group, measured in the same process.
     python benchmarks/trainer_throughput.py            # the study in docs/performance.md
     python benchmarks/trainer_throughput.py --quick    # smoke run (CI)
 
-Cases (quadrotor, ``fast`` preset unless stated):
-  fast            the preset: 64 envs x 16 updates per vector step, 64-64 networks
+Cases (quadrotor, ``fast_dpg`` preset, the TD3 actor update through the critic, unless stated):
+  fast            that preset: 64 envs x 16 updates per vector step, 64-64 networks
   fast_vmap1      the same, run through ``vmap`` over a seed axis of size 1 (what the
                   runner did before single-seed runs skipped vmap: lax.cond becomes select)
   envs16_utd16    16 envs x 16 updates: one update per transition
@@ -17,9 +17,11 @@ Cases (quadrotor, ``fast`` preset unless stated):
   seeds4          4 seeds vmapped in one program (per-seed figures are the total / 4)
   fast_caps, net256_caps   fast / net256 with the CAPS actor terms compiled in: the cost
                   of the static CAPS switch's absence (before/after of that change)
+  model_h50       the ``fast`` preset: per vector step a 50-step differentiable rollout of
+                  the 64 envs (the actor update), then 16 critic updates
 
 ``--large`` (for a GPU) replaces the CPU study with thousands of envs:
-  fast                    the preset as above (the reference)
+  fast                    the ``fast_dpg`` preset as above (the reference)
   envs1024_b1024          1024 envs x 16 updates, batch 1024
   envs4096_b4096          4096 envs x 16 updates, batch 4096
   envs4096_b4096_net256   the same with 256-256 networks
@@ -45,8 +47,8 @@ def large_cases() -> dict:
     base = dict(epochs=1, warmup_transitions=8_192, buffer_size=1_048_576)
 
     def cfg(num_envs=64, vsteps=500, **kw):
-        return preset("fast", **{**base, "num_envs": num_envs, "total_transitions": base["warmup_transitions"]
-                                 + num_envs * vsteps, **kw})  # fmt: skip
+        total = base["warmup_transitions"] + num_envs * vsteps
+        return preset("fast_dpg", **{**base, "num_envs": num_envs, "total_transitions": total, **kw})
 
     return {
         "fast": (cfg(), False),
@@ -65,9 +67,12 @@ def cases(quick: bool) -> dict:
 
     def cfg(num_envs=64, **kw):
         total = kw.pop("total", steps) + base["warmup_transitions"]
-        return preset("fast", **{**base, "num_envs": num_envs, "total_transitions": total, **kw})
+        return preset("fast_dpg", **{**base, "num_envs": num_envs, "total_transitions": total, **kw})
 
-    caps_hp = dataclasses.replace(preset("fast").hp, smooth_time=1e-12)
+    caps_hp = dataclasses.replace(preset("fast_dpg").hp, smooth_time=1e-12)
+    model_steps = 4 if quick else 40  # vector steps (actor updates) of the model-based case
+    model_total = base["warmup_transitions"] + 64 * 50 * model_steps
+    model = preset("fast", **{**base, "total_transitions": model_total})
     out = {
         "fast": (cfg(), False),
         "fast_vmap1": (cfg(), True),
@@ -79,9 +84,11 @@ def cases(quick: bool) -> dict:
         "fast_caps": (cfg(hp=caps_hp), False),
         "net256_caps": (cfg(hidden=(256, 256), total=steps // 4, hp=caps_hp), False),
         "seeds4": (cfg(num_seeds=4, total=steps // 2), True),
+        # the fast preset itself: a 50-step differentiable rollout (the actor update) per vector step
+        "model_h50": (model, False),
     }
     if quick:
-        out = {k: out[k] for k in ("fast", "fast_vmap1")}
+        out = {k: out[k] for k in ("fast", "fast_vmap1", "model_h50")}
     return out
 
 
@@ -140,7 +147,7 @@ def main(argv=None):
     fast_upd = fc.steps_per_epoch * fc.updates_per_step / best["fast"]
     rows = []
     for name, (c, _, _, comp) in built.items():
-        trans = c.num_seeds * c.steps_per_epoch * c.num_envs
+        trans = c.num_seeds * c.steps_per_epoch * c.num_envs * c.env_steps_per_step
         upd = c.num_seeds * c.steps_per_epoch * c.updates_per_step
         row = dict(
             case=name,

@@ -1,7 +1,7 @@
-"""Diagnostic: can the ``fast`` preset's actor represent a precise tracker at all?
+"""Diagnostic: can the ``fast_dpg`` preset's actor represent a precise tracker at all?
 
 Behaviour-clones the geometric controller (ttd3_jax/geometric.py) into the same actor the
-``fast`` preset trains (64-64 ReLU MLP, tanh output, running-statistics input
+``fast_dpg`` preset trains (64-64 ReLU MLP, tanh output, running-statistics input
 normalisation) and the same observation (the ``practical`` env, track frame).  No RL is
 involved: this separates what the observation and the network can express from what the
 T-TD3 critic can teach them (docs/results.md).
@@ -16,11 +16,12 @@ Spiral-RT and LOS-RT (seed 0) after each round of ``--steps-per-round`` steps.
     python experiments/bc_geometric.py --then-ttd3 3 7   # then T-TD3 from the clone (4 min)
     python experiments/bc_geometric.py --quick       # smoke run (CI)
 
-``--then-ttd3 F A`` then hands the clone to the ``fast`` T-TD3 trainer, after its usual
-random warm-up: ``F`` epochs with the actor frozen (actor learning rate 0, so the critics
-learn the clone's own values on the clone's own data), then ``A`` epochs of normal T-TD3,
-with an evaluation after each epoch.  The input normalisation is frozen at the
-demonstration data's statistics, so that only the actor updates can change the policy.
+``--then-ttd3 F A`` then hands the clone to the ``fast_dpg`` T-TD3 trainer (the paper's
+actor update), after its usual random warm-up: ``F`` epochs with the actor frozen (actor
+learning rate 0, so the critics learn the clone's own values on the clone's own data),
+then ``A`` epochs of normal T-TD3, with an evaluation after each epoch.  The input
+normalisation is frozen at the demonstration data's statistics, so that only the actor
+updates can change the policy.
 """
 
 from __future__ import annotations
@@ -79,7 +80,7 @@ def main(argv=None) -> int:
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--then-ttd3", type=int, nargs=2, metavar=("FROZEN", "ACTOR"), default=None,
-                    help="then train the clone with the fast T-TD3 preset: FROZEN epochs critic-only, "
+                    help="then train the clone with the fast_dpg T-TD3 preset: FROZEN epochs critic-only, "
                     "ACTOR epochs in full")  # fmt: skip
     ap.add_argument("--quick", action="store_true", help="tiny sizes, to keep the script alive in CI")
     args = ap.parse_args(argv)
@@ -133,12 +134,12 @@ def main(argv=None) -> int:
 
 
 def then_ttd3(actor, stats, hidden, frozen: int, full: int, quick: bool, t0: float) -> None:
-    """The clone as the starting actor of the ``fast`` T-TD3 trainer (see the docstring)."""
+    """The clone as the starting actor of the ``fast_dpg`` T-TD3 trainer (see the docstring)."""
     over = dict(hidden=hidden)
     if quick:
         over.update(num_envs=16, total_transitions=16 * 40, warmup_transitions=16 * 8, buffer_size=16 * 64,
                     batch_size=64, updates_per_step=2, epochs=2)  # fmt: skip
-    c = T.preset("fast", **over)
+    c = T.preset("fast_dpg", **over)
     t = T.make_trainer(c)
     ts = jax.jit(t.init)(T.seed_keys(c)[0], c.hp)
     big = 1e12  # a count this large freezes the running statistics
@@ -147,7 +148,7 @@ def then_ttd3(actor, stats, hidden, frozen: int, full: int, quick: bool, t0: flo
                     obs_stats=frozen_stats)  # fmt: skip
     evaluate, epoch = jax.jit(t.evaluate), jax.jit(t.epoch)
     no_actor = c.hp.replace(lr_actor=0.0)
-    print(f"T-TD3 (fast preset) from the clone: {frozen} epoch(s) critic-only, then {full} in full")
+    print(f"T-TD3 (fast_dpg preset) from the clone: {frozen} epoch(s) critic-only, then {full} in full")
     print(f"{'epoch':>5} {'actor':>6} {'σ':>9} {'Spiral-RT':>10} {'LOS-RT':>9} {'val':>9} {'wall s':>7}")
 
     def show(e, actor_state, sigma, m):

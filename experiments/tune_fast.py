@@ -1,6 +1,7 @@
-"""Single-seed variants of the ``fast`` preset, as explored while tuning it (docs/results.md).
+"""Single-seed variants of the ``fast_dpg`` preset (the paper's actor update; it was the ``fast``
+preset until 2026-12-01), as explored while tuning it (docs/results.md).
 
-Each variant is the ``fast`` preset plus a few overrides of the env config, the
+Each variant is the ``fast_dpg`` preset plus a few overrides of the env config, the
 ``TrainConfig`` or ``Hyper``.  Env overrides are applied by swapping
 ``ttd3_jax.train.quad_env_config`` for this process only (the CLI does not expose
 every env field).  The script trains each variant, then prints the median Spiral-RT
@@ -9,7 +10,7 @@ epoch to epoch), the best single evaluation (an optimistic figure: chosen on the
 tracks) and the policy selected on the validation tracks (the honest one).
 
     python experiments/tune_fast.py --list
-    python experiments/tune_fast.py --variant fast --variant world_frame
+    python experiments/tune_fast.py --variant fast_dpg --variant world_frame
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from ttd3_jax.trajectories import TrackConfig
 
 # name: (env overrides, TrainConfig overrides, Hyper overrides)
 VARIANTS = {
-    "fast": ({}, {}, {}),
+    "fast_dpg": ({}, {}, {}),
     "world_frame": ({"obs_frame": "world"}, {}, {}),
     "e_max_2m": ({"e_max": 2.0}, {}, {}),
     "no_obs_norm": ({}, {"normalize_obs": False}, {}),
@@ -105,7 +106,7 @@ VARIANTS = {
 
 def config_for(name: str) -> tuple[T.TrainConfig, dict]:
     env_o, cfg_o, hp_o = VARIANTS[name]
-    c = T.preset("fast", **cfg_o)
+    c = T.preset("fast_dpg", **cfg_o)
     c = dataclasses.replace(c, hp=dataclasses.replace(c.hp, **hp_o))
     return T.with_algo(c, c.algo), env_o
 

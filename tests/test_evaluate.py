@@ -37,7 +37,7 @@ def fake_run_dir(path) -> str:
     """A run directory as the runner writes it (config.json, an orbax checkpoint of the
     whole train state at epoch 2), without the ~40 s of compiling a real run: the state is
     zeros except for freshly initialised actor weights."""
-    c = preset("fast", **TINY)
+    c = preset("fast_dpg", **TINY)
     trainer = make_trainer(c)
     like = jax.eval_shape(per_seed(trainer.init, c, (0, None)), seed_keys(c), c.hp)
     state = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), like)
@@ -83,7 +83,7 @@ def test_cli_evaluates_a_saved_checkpoint(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_cli_evaluates_a_real_tiny_run(tmp_path):
-    summary = run(preset("fast", **TINY), out=str(tmp_path), verbose=False)
+    summary = run(preset("fast_dpg", **TINY), out=str(tmp_path), verbose=False)
     assert main([summary["run_dir"], "--repeats", "1"]) == 0
     check_evaluation_json(summary["run_dir"], 2)
 

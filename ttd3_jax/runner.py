@@ -239,7 +239,8 @@ class _LiveBar:
         c = self.c
         done = int(np.max(np.asarray(done)))
         frac = done / c.steps_per_epoch
-        sps = c.num_seeds * c.num_envs * done / max(time.perf_counter() - self.t0, 1e-9)
+        steps = c.num_seeds * c.num_envs * c.env_steps_per_step * done
+        sps = steps / max(time.perf_counter() - self.t0, 1e-9)
         bar = "#" * int(20 * frac) + "." * (20 - int(20 * frac))
         sys.stdout.write(f"\r  epoch {self.epoch}/{c.epochs} [{bar}] {100 * frac:5.1f}%  {sps:8.3g} steps/s ")
         sys.stdout.flush()

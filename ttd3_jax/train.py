@@ -8,6 +8,11 @@ takes the critic step (:func:`ttd3_jax.losses.critic_loss`), the σ update
 (:mod:`ttd3_jax.noise`) and, every ``policy_delay`` updates, the actor step and
 the Polyak target update.
 
+With ``model_horizon`` H > 0 (the ``fast`` preset; not in the paper) the actor step is
+:func:`_model_actor_step` instead: :func:`_model_rollout` steps the envs H times with the
+current policy, the gradient of the rollout's return flows back through the simulator
+into the actor, and the rollout's transitions are stored for the critic updates.
+
 Static settings (shapes, loop lengths, algorithm switches) live in the frozen
 :class:`TrainConfig`; numeric hyperparameters live in the :class:`Hyper` pytree, so a
 sweep over seeds and hyperparameters is a ``vmap`` of :meth:`Trainer.train`.
@@ -33,7 +38,7 @@ from ttd3_jax.env import PRESETS as ENV_PRESETS
 from ttd3_jax.env import TrackingEnv, make_config
 from ttd3_jax.evaluate import Controller, evaluate_on_tracks, test_tracks
 from ttd3_jax.losses import actor_loss, critic_loss
-from ttd3_jax.networks import CRITICS, Networks, init_params, make_networks
+from ttd3_jax.networks import CRITICS, Networks, init_params, make_networks, twin_q
 from ttd3_jax.trajectories import validation_tracks
 
 QUADROTOR = "quadrotor"
@@ -68,6 +73,9 @@ class Hyper:
     smooth_time: float = 0.0  # CAPS weight on ||π(s) − π(s')||² in the actor loss
     smooth_space: float = 0.0  # CAPS weight on ||π(s) − π(s + smooth_sigma ξ)||²
     smooth_sigma: float = 0.05  # std of the CAPS state perturbation, in network-input units
+    # model-based actor gradient (``TrainConfig.model_horizon`` > 0; not in the paper)
+    model_bootstrap: float = 1.0  # weight of min_i Q_i at the rollout's horizon (0 = pure rollout)
+    model_grad_clip: float = 1.0  # global-norm clip of the back-propagated actor gradient
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,6 +94,11 @@ class TrainConfig:
     batch_size: int = 256
     updates_per_step: int = 20  # G, gradient updates per vector env step
     policy_delay: int = 2  # d
+    # 0: the actor follows ∂Q₁/∂a (TD3, the paper).  H >= 1 (quadrotor only, not in the paper):
+    # every vector step rolls the envs H steps with the current policy (plus exploration
+    # noise), back-propagates Σ γ^k r_k + γ^H min_i Q_i(s_H, π(s_H)) through the simulator into
+    # the actor, and stores the H·num_envs transitions for the usual TD3 critic updates.
+    model_horizon: int = 0
     n_step: int = 1  # n-step returns in the critic target (1 = TD3 as published)
     lr_schedule: str = "constant"  # "linear" / "cosine": learning rates decay to 0 over the run
     hidden: tuple[int, ...] = (256, 256)
@@ -106,14 +119,20 @@ class TrainConfig:
 
     # derived loop lengths ------------------------------------------------------------
     @property
+    def env_steps_per_step(self) -> int:
+        """Env steps per vector step after warm-up (``model_horizon``, or 1)."""
+        return max(1, self.model_horizon)
+
+    @property
     def warmup_steps(self) -> int:
         """Vector env steps of random warm-up."""
         return -(-self.warmup_transitions // self.num_envs)
 
     @property
     def steps_per_epoch(self) -> int:
-        """Vector env steps (each followed by G updates) per compiled epoch."""
-        return max(1, (self.total_transitions // self.num_envs - self.warmup_steps) // self.epochs)
+        """Vector steps (each ``env_steps_per_step`` env steps, then G updates) per compiled epoch."""
+        left = self.total_transitions // self.num_envs - self.warmup_steps
+        return max(1, left // (self.env_steps_per_step * self.epochs))
 
     @property
     def buffer_capacity(self) -> int:
@@ -148,6 +167,13 @@ def validate(c: TrainConfig) -> None:
             isinstance(v, int) and not isinstance(v, bool) and v >= 1,
             f"{name} must be an integer >= 1, got {v!r}",
         )
+    need(isinstance(c.model_horizon, int) and not isinstance(c.model_horizon, bool) and c.model_horizon >= 0,
+         f"model_horizon must be an integer >= 0, got {c.model_horizon!r}")  # fmt: skip
+    if c.model_horizon > 0:
+        need(c.env == QUADROTOR,
+             f"model_horizon > 0 back-propagates through the quadrotor simulator; env {c.env!r} "
+             "needs model_horizon 0")  # fmt: skip
+        need(not uses_caps(c), "the CAPS terms (hp.smooth_time, hp.smooth_space) need model_horizon 0")
     need(isinstance(c.warmup_transitions, int) and c.warmup_transitions >= 0,
          f"warmup_transitions must be an integer >= 0, got {c.warmup_transitions!r}")  # fmt: skip
     need(isinstance(c.seed, int) and c.seed >= 0, f"seed must be an integer >= 0, got {c.seed!r}")
@@ -162,7 +188,8 @@ def validate(c: TrainConfig) -> None:
     need(c.warmup_transitions >= c.batch_size,
          f"warmup_transitions ({c.warmup_transitions}) must be >= batch_size ({c.batch_size}) so the "
          "first minibatch is drawn from a filled buffer")  # fmt: skip
-    budget = c.total_transitions // c.num_envs - -(-c.warmup_transitions // c.num_envs)
+    h_env = max(1, c.model_horizon) if isinstance(c.model_horizon, int) else 1
+    budget = (c.total_transitions // c.num_envs - -(-c.warmup_transitions // c.num_envs)) // h_env
     need(budget >= c.epochs,
          f"total_transitions ({c.total_transitions}) leaves {max(budget, 0)} vector steps after warm-up, "
          f"fewer than epochs ({c.epochs}); raise total_transitions or lower epochs")  # fmt: skip
@@ -171,10 +198,10 @@ def validate(c: TrainConfig) -> None:
         v = getattr(h, name)
         need(0 < v <= 1 if name == "tau" else 0 <= v < 1,
              f"hp.{name} must be in {'(0, 1]' if name == 'tau' else '[0, 1)'}, got {v!r}")  # fmt: skip
-    for name in ("lr_actor", "lr_critic", "u_max", "reward_scale"):
+    for name in ("lr_actor", "lr_critic", "u_max", "reward_scale", "model_grad_clip"):
         need(getattr(h, name) > 0, f"hp.{name} must be > 0, got {getattr(h, name)!r}")
     for name in ("sigma", "sigma_end", "lam", "target_sigma", "target_clip", "smooth_time", "smooth_space",
-                 "smooth_sigma"):  # fmt: skip
+                 "smooth_sigma", "model_bootstrap"):  # fmt: skip
         need(getattr(h, name) >= 0, f"hp.{name} must be >= 0, got {getattr(h, name)!r}")
     need(0 <= h.beta <= 1, f"hp.beta must be in [0, 1], got {h.beta!r}")
 
@@ -281,6 +308,7 @@ class Trainer(NamedTuple):
     epoch: Callable  # (ts, hp) -> (ts, metrics): steps_per_epoch vector steps + updates
     evaluate: Callable  # (ts) -> eval metrics (deterministic policy, separate envs)
     train: Callable  # (key, hp) -> (ts, per-epoch metrics, per-epoch eval): fully fused
+    model_loss: Callable  # (actor, ts, hp, key) -> (loss, aux): the model-based actor objective
 
 
 PROGRESS_TICKS = 50  # host progress callbacks per epoch (when ``on_progress`` is given)
@@ -303,14 +331,17 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
     def policy(ts: TrainState, obs):
         return nets.actor.apply(ts.actor, nrm.apply(stats(ts), obs))
 
-    def _collect(ts: TrainState, hp: Hyper, actions: jax.Array, key: jax.Array):
-        """Step all envs with ``actions``; store transitions; auto-reset finished envs."""
-        s = ts.env_state
-        nxt = v_step(s, actions)
+    def _env_step(env_state, ep_return, hp: Hyper, actions: jax.Array, key: jax.Array):
+        """Step all envs with ``actions`` and auto-reset finished ones (fresh track and start).
+
+        Returns the new env state, the :class:`~ttd3_jax.buffer.Transition` (true next
+        observation, ``terminated`` apart from truncation), the raw next state (before the
+        reset), the running episode returns, and the sum and count of finished returns."""
+        nxt = v_step(env_state, actions)
         trunc = nxt.info["truncation"]
         terminated = nxt.done * (1.0 - trunc)
         tr = rb.Transition(
-            obs=s.obs,
+            obs=env_state.obs,
             action=actions,
             reward=hp.reward_scale * nxt.reward,
             next_obs=nxt.obs,
@@ -318,19 +349,27 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
             done=nxt.done,
         )
         done = nxt.done > 0
-        ep_return = ts.ep_return + nxt.reward
-        finished_sum = jnp.sum(jnp.where(done, ep_return, 0.0))
-        finished_n = jnp.sum(done)
+        ep_return = ep_return + nxt.reward
+        finished = (jnp.sum(jnp.where(done, ep_return, 0.0)), jnp.sum(done))
         new_state = jax.lax.cond(
             jnp.any(done), lambda: _where(done, v_reset(jax.random.split(key, n)), nxt), lambda: nxt
         )
-        ts = ts.replace(
-            env_state=new_state,
-            obs_stats=nrm.update(ts.obs_stats, nxt.obs) if c.normalize_obs else ts.obs_stats,
-            ep_return=jnp.where(done, 0.0, ep_return),
+        return new_state, tr, nxt, jnp.where(done, 0.0, ep_return), finished
+
+    def _store(ts: TrainState, tr: rb.Transition) -> TrainState:
+        """Insert one env batch of transitions; update the observation statistics."""
+        return ts.replace(
+            obs_stats=nrm.update(ts.obs_stats, tr.next_obs) if c.normalize_obs else ts.obs_stats,
             buffer=rb.insert(ts.buffer, tr),
             n_tr=ts.n_tr + n,
         )
+
+    def _collect(ts: TrainState, hp: Hyper, actions: jax.Array, key: jax.Array):
+        """Step all envs with ``actions``; store transitions; auto-reset finished envs."""
+        env_state, tr, _, ep_return, (finished_sum, finished_n) = _env_step(
+            ts.env_state, ts.ep_return, hp, actions, key
+        )
+        ts = _store(ts.replace(env_state=env_state, ep_return=ep_return), tr)
         return ts, finished_sum, finished_n
 
     def _init(key, hp: Hyper) -> TrainState:
@@ -398,7 +437,15 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
         )
         ts = ts.replace(critic=critic, critic_opt=critic_opt, noise=noise, n_upd=n_upd)
 
+        def target_step(ts):  # model_horizon > 0: the actor was updated by the rollout
+            return ts.replace(
+                target_actor=optax.incremental_update(ts.actor, ts.target_actor, hp.tau),
+                target_critic=optax.incremental_update(ts.critic, ts.target_critic, hp.tau),
+            ), jnp.full((), jnp.nan)
+
         def actor_step(ts):
+            if c.model_horizon > 0:
+                return target_step(ts)
             a_loss, g = jax.value_and_grad(actor_loss)(ts.actor, nets, ts.critic, batch, k_smooth, hp, caps)
             actor_opt = _with_lr(ts.actor_opt, hp.lr_actor * frac)
             upd, actor_opt = _adam(hp.lr_actor).update(g, actor_opt, ts.actor)
@@ -418,19 +465,71 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
         ts, a_loss = jax.lax.cond(due, actor_step, lambda ts: (ts, jnp.full((), jnp.nan)), ts)
         return ts, (c_loss, a_loss, aux["q_mean"])
 
+    def _model_rollout(actor, ts: TrainState, hp: Hyper, key: jax.Array):
+        """``model_horizon`` steps of all envs under the noisy current policy, differentiable in
+        ``actor``: returns −mean_envs [Σ_{k<H} γ^k r_k + γ^H min_i Q_i(s_H, π(s_H))] (scaled
+        rewards; an episode's return stops where it ends, bootstrapping with γ min_i Q_i at the
+        true final observation if it was truncated), and the rollout's transitions (H, n, ...)
+        with the env state and running returns after it.  The critics are held fixed."""
+        x_stats, critic = stats(ts), jax.lax.stop_gradient(ts.critic)
+        std = nz.std(noise_cfg, ts.noise.sigma)
+
+        def q_min(obs):  # min_i Q_i(s, π(s)), (n,)
+            x = nrm.apply(x_stats, obs)
+            a = nets.actor.apply(actor, x)
+            return jnp.min(twin_q(nets, critic, x, a, a), axis=0)
+
+        def body(carry, k):
+            s, ep_ret, alive, disc, ret, fin = carry
+            k_noise, k_reset = jax.random.split(k)
+            pi = nets.actor.apply(actor, nrm.apply(x_stats, s.obs))
+            a = jnp.clip(pi + std * jax.random.normal(k_noise, pi.shape), -1.0, 1.0)
+            s, tr, nxt, ep_ret, f = _env_step(s, ep_ret, hp, a, k_reset)
+            boot = hp.gamma * nxt.info["truncation"] * q_min(nxt.obs)
+            ret = ret + disc * alive * (tr.reward + hp.model_bootstrap * boot)
+            fin = (fin[0] + f[0], fin[1] + f[1])
+            carry = (s, ep_ret, alive * (1.0 - tr.done), disc * hp.gamma, ret, fin)
+            return carry, jax.lax.stop_gradient(tr)
+
+        zero = jnp.zeros(())
+        carry = (ts.env_state, ts.ep_return, jnp.ones(n), jnp.ones(()), jnp.zeros(n), (zero, zero))
+        carry, trs = jax.lax.scan(body, carry, jax.random.split(key, c.model_horizon))
+        s, ep_ret, alive, disc, ret, fin = carry
+        ret = ret + disc * alive * hp.model_bootstrap * q_min(s.obs)
+        return -jnp.mean(ret), (jax.lax.stop_gradient((s, ep_ret)), trs, fin)
+
+    def _model_actor_step(ts: TrainState, hp: Hyper, key: jax.Array):
+        """One actor update from a differentiable rollout (``model_horizon`` > 0); its
+        transitions go to the buffer and the envs continue from where it ended."""
+        grad = jax.value_and_grad(_model_rollout, has_aux=True)
+        (a_loss, ((env_state, ep_return), trs, fin)), g = grad(ts.actor, ts, hp, key)
+        norm = jnp.sqrt(sum(jnp.sum(x * x) for x in jax.tree.leaves(g)))
+        scale = jnp.minimum(1.0, hp.model_grad_clip / (norm + 1e-12))
+        g = jax.tree.map(lambda x: x * scale, g)
+        actor_opt = _with_lr(ts.actor_opt, hp.lr_actor * lr_fraction(c, ts.n_upd))
+        upd, actor_opt = _adam(hp.lr_actor).update(g, actor_opt, ts.actor)
+        ts = ts.replace(actor=optax.apply_updates(ts.actor, upd), actor_opt=actor_opt,
+                        env_state=env_state, ep_return=ep_return)  # fmt: skip
+        ts = jax.lax.scan(lambda t, tr: (_store(t, tr), None), ts, trs)[0]
+        return ts, a_loss, fin
+
     def _vector_step(ts: TrainState, hp: Hyper):
         key, k_noise, k_reset, k_upd = jax.random.split(ts.key, 4)
         ts = ts.replace(key=key)
-        obs = ts.env_state.obs
-        std = nz.std(noise_cfg, ts.noise.sigma)
-        a = policy(ts, obs) + std * jax.random.normal(k_noise, (n, spec.action_size))
-        ts, ret_sum, ret_n = _collect(ts, hp, jnp.clip(a, -1.0, 1.0), k_reset)
+        if c.model_horizon > 0:
+            ts, m_loss, (ret_sum, ret_n) = _model_actor_step(ts, hp, k_noise)
+        else:
+            obs = ts.env_state.obs
+            std = nz.std(noise_cfg, ts.noise.sigma)
+            a = policy(ts, obs) + std * jax.random.normal(k_noise, (n, spec.action_size))
+            ts, ret_sum, ret_n = _collect(ts, hp, jnp.clip(a, -1.0, 1.0), k_reset)
         ts, (c_loss, a_loss, q) = jax.lax.scan(
             lambda t, x: _update(t, hp, *x),
             ts,
             (jax.random.split(k_upd, c.updates_per_step), jnp.arange(c.updates_per_step)),
         )
-        out = dict(critic_loss=jnp.mean(c_loss), actor_loss=jnp.nanmean(a_loss), q_mean=jnp.mean(q))
+        a_loss = m_loss if c.model_horizon > 0 else jnp.nanmean(a_loss)
+        out = dict(critic_loss=jnp.mean(c_loss), actor_loss=a_loss, q_mean=jnp.mean(q))
         return ts, (out, ret_sum, ret_n)
 
     every = max(1, c.steps_per_epoch // PROGRESS_TICKS)
@@ -470,7 +569,7 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
         ts, (m, ev) = jax.lax.scan(body, ts, None, c.epochs)
         return ts, m, ev
 
-    return Trainer(c, spec, nets, _init, _epoch, _evaluate, _train)
+    return Trainer(c, spec, nets, _init, _epoch, _evaluate, _train, _model_rollout)
 
 
 def policy_controller(nets: Networks, actor_params, obs_stats: nrm.ObsStats | None = None) -> Controller:
@@ -555,15 +654,19 @@ def preset(name: str, **overrides) -> TrainConfig:
     ``paper``: the published quadrotor settings (spec §2.4), 3e6 transitions.
     ``fast``: quadrotor with the ``practical`` env (10 ms actions, 50 ms look-ahead,
     track-frame observation), hover-centred thrust, running observation normalisation,
-    64-64 networks, 16 updates per 64-env step and rewards scaled by 0.01; aimed at a
-    laptop CPU (about 2 minutes on 2 cores).
-    Status: still being tuned (see docs/results.md).
+    64-64 networks, 64 envs, rewards scaled by 0.01, and (not in the paper) a model-based
+    actor update: 0.5 s rollouts (``model_horizon=50``) back-propagated through the
+    simulator, actor lr 1e-3.  The twin critics are still trained by TD3 but the actor does
+    not use them (``model_bootstrap=0``; with them at the horizon it learns worse,
+    docs/results.md).  About 2 minutes on 2 CPU cores; beats the paper's T-TD3 errors.
+    ``fast_dpg``: ``fast`` with the paper's actor update (∂Q₁/∂a through the critic),
+    450k transitions, 16 updates per 64-env step; it plateaus (docs/results.md).
     ``mujoco``: the MuJoCo protocol (spec §2.7): 1 env, 1 update per step, τ = 0.005,
     c = 0.5, 1e6 steps, L_nom = 1000.
     """
     if name == "paper":
         base = TrainConfig()
-    elif name == "fast":
+    elif name in ("fast", "fast_dpg"):
         base = TrainConfig(
             env_preset="practical",
             hover_centered_thrust=True,
@@ -578,6 +681,14 @@ def preset(name: str, **overrides) -> TrainConfig:
             epochs=15,
             hp=Hyper(tau=0.005, reward_scale=0.01),
         )
+        if name == "fast":
+            base = dataclasses.replace(
+                base,
+                model_horizon=50,
+                total_transitions=3_200_000,
+                epochs=10,
+                hp=base.hp.replace(lr_actor=1e-3, model_bootstrap=0.0),
+            )
     elif name == "mujoco":
         base = TrainConfig(
             env="hopper",
@@ -594,12 +705,12 @@ def preset(name: str, **overrides) -> TrainConfig:
     return dataclasses.replace(base, **overrides) if overrides else base
 
 
-PRESETS = ("paper", "fast", "mujoco")
+PRESETS = ("paper", "fast", "fast_dpg", "mujoco")
 
 
 def total_epochs_transitions(c: TrainConfig) -> int:
     """Transitions actually collected by a run (the budget rounded to whole epochs)."""
-    return (c.warmup_steps + c.steps_per_epoch * c.epochs) * c.num_envs
+    return (c.warmup_steps + c.steps_per_epoch * c.epochs * c.env_steps_per_step) * c.num_envs
 
 
 def _finite_tree(tree) -> bool:
