@@ -413,6 +413,7 @@ def test_normalised_run_stores_stats_and_evaluates():
 # --------------------------------------------------------------------------- learning
 
 
+@pytest.mark.slow
 def test_fast_dpg_preset_learns_on_a_small_budget(tmp_path):
     """The paper's actor update (``fast_dpg``): a real improvement over the untrained policy
     on the fixed test tracks (one seed, about a minute on 2 CPU cores).  Untrained Σ||e||
@@ -470,8 +471,8 @@ def test_caps_terms_are_compiled_in_only_when_the_config_sets_them():
     hp = Hyper(smooth_time=1.0, smooth_space=1.0, smooth_sigma=0.5)
     assert float(actor_loss(actor, nets, critic, batch, k[2], hp, caps=True)) > plain + 1e-4
     assert not uses_caps(preset("fast"))
-    assert uses_caps(preset("fast", hp=Hyper(smooth_time=0.5)))
-    assert uses_caps(preset("fast", hp=Hyper(smooth_space=0.3)))
+    assert uses_caps(preset("fast_dpg", hp=Hyper(smooth_time=0.5)))
+    assert uses_caps(preset("fast_dpg", hp=Hyper(smooth_space=0.3)))
 
 
 def test_epochs_reuse_one_program_with_no_host_transfers_and_donated_state():
@@ -574,13 +575,20 @@ def test_policy_selected_on_validation_tracks_is_saved_and_reloads(tmp_path):
 # --------------------------------------------------------------------------- model-based actor
 
 
-def test_model_rollout_stores_its_transitions_in_env_order():
+@pytest.fixture(scope="module")
+def model_trainer():
+    """A tiny model-based trainer (H = 3) and its state after warm-up, shared by the tests
+    below (one init compile)."""
+    c = tiny(model_horizon=3, epochs=1, total_transitions=16 * (8 + 3 * 6), hp=Hyper(model_bootstrap=0.0))
+    t = make_trainer(c)
+    return c, t, jax.jit(t.init)(seed_keys(c)[0], c.hp)
+
+
+def test_model_rollout_stores_its_transitions_in_env_order(model_trainer):
     """With ``model_horizon`` H each vector step adds H·num_envs transitions; row r + num_envs
     is still env r's next step (next_obs of one row is the obs of that row unless it ended),
     which n-step sampling relies on."""
-    c = tiny(model_horizon=5, epochs=1, total_transitions=16 * (8 + 5 * 6), buffer_size=16 * 64)
-    t = make_trainer(c)
-    ts0 = jax.jit(t.init)(seed_keys(c)[0], c.hp)
+    c, t, ts0 = model_trainer
     ts, m = jax.jit(t.epoch)(ts0, c.hp)
     added = c.steps_per_epoch * c.model_horizon * c.num_envs
     assert c.steps_per_epoch == 6 and int(ts.n_tr) == int(ts0.n_tr) + added
@@ -594,23 +602,27 @@ def test_model_rollout_stores_its_transitions_in_env_order():
     assert np.isfinite(float(m["actor_loss"]))
 
 
-def test_model_actor_loss_is_the_rollout_return_and_its_gradient_matches_finite_differences():
+def test_model_actor_loss_is_the_rollout_return_and_its_gradient_matches_finite_differences(model_trainer):
     """The model-based actor objective equals −mean Σ γ^k r_k of the same rollout stepped
     by hand (no critic term, no exploration noise), and its gradient along a random
-    direction matches a central difference."""
-    c = tiny(model_horizon=3, hp=Hyper(model_bootstrap=0.0, reward_scale=0.01), normalize_obs=False)
-    t = make_trainer(c)
-    ts = jax.jit(t.init)(seed_keys(c)[0], c.hp)
+    direction matches a central difference.  A second jitted call with w = 0.5 adds
+    w γ^H mean min_i Q_i(s_H, π(s_H)) (``hp.model_bootstrap``)."""
+    from ttd3_jax import normalize as nrm
+    from ttd3_jax.networks import twin_q
+
+    c, t, ts = model_trainer
     ts = ts.replace(noise=ts.noise.replace(sigma=jnp.zeros_like(ts.noise.sigma)))
     key = jax.random.PRNGKey(7)
-    value_grad = jax.jit(jax.value_and_grad(lambda a: t.model_loss(a, ts, c.hp, key)[0]))
-    loss, g = value_grad(ts.actor)
+    loss_fn = jax.jit(t.model_loss)
+    value_grad = jax.jit(jax.value_and_grad(lambda a, hp: loss_fn(a, ts, hp, key)[0]))
+    loss, g = value_grad(ts.actor, c.hp)
     s, ret, alive = ts.env_state, jnp.zeros(c.num_envs), jnp.ones(c.num_envs)
     step = jax.jit(jax.vmap(t.spec.env.step))
-    for k in range(3):
-        s = step(s, t.nets.actor.apply(ts.actor, s.obs))
-        ret = ret + alive * c.hp.gamma**k * 0.01 * s.reward
+    for k in range(c.model_horizon):
+        s = step(s, t.nets.actor.apply(ts.actor, nrm.apply(ts.obs_stats, s.obs)))
+        ret = ret + alive * c.hp.gamma**k * c.hp.reward_scale * s.reward
         alive = alive * (1.0 - s.done)
+    assert float(jnp.sum(alive)) == c.num_envs  # no episode ends this early: no truncation term
     assert float(loss) == pytest.approx(-float(jnp.mean(ret)), rel=1e-5)
 
     leaves, tree = jax.tree.flatten(ts.actor)
@@ -618,31 +630,17 @@ def test_model_actor_loss_is_the_rollout_return_and_its_gradient_matches_finite_
     d = jax.tree.unflatten(tree, [jax.random.normal(k, x.shape) for k, x in zip(ks, leaves, strict=True)])
     eps = 1e-3
     shift = lambda e: jax.tree.map(lambda x, y: x + e * y, ts.actor, d)  # noqa: E731
-    fd = (float(value_grad(shift(eps))[0]) - float(value_grad(shift(-eps))[0])) / (2 * eps)
+    fd = (float(value_grad(shift(eps), c.hp)[0]) - float(value_grad(shift(-eps), c.hp)[0])) / (2 * eps)
     an = sum(float(jnp.sum(x * y)) for x, y in zip(jax.tree.leaves(g), jax.tree.leaves(d), strict=True))
     assert an == pytest.approx(fd, rel=0.03), (an, fd)
     assert abs(an) > 1e-4  # a real gradient, not zero
 
-
-def test_model_bootstrap_adds_the_critic_value_at_the_horizon():
-    """model_bootstrap w adds w γ^H mean min_i Q_i(s_H, π(s_H)) (alive envs) to the objective."""
-    from ttd3_jax import normalize as nrm
-    from ttd3_jax.networks import twin_q
-
-    c = tiny(model_horizon=2, hp=Hyper(model_bootstrap=0.0))
-    t = make_trainer(c)
-    ts = jax.jit(t.init)(seed_keys(c)[0], c.hp)
-    key = jax.random.PRNGKey(1)
-    loss = jax.jit(t.model_loss)
-    l0, ((s_h, _), trs, _) = loss(ts.actor, ts, c.hp, key)
-    l1, _ = loss(ts.actor, ts, c.hp.replace(model_bootstrap=0.5), key)
-    x = nrm.apply(ts.obs_stats, s_h.obs)
+    with_q = float(value_grad(ts.actor, c.hp.replace(model_bootstrap=0.5))[0])
+    x = nrm.apply(ts.obs_stats, s.obs)
     a = t.nets.actor.apply(ts.actor, x)
     q = jnp.min(twin_q(t.nets, ts.critic, x, a, a), axis=0)
-    alive = jnp.prod(1.0 - trs.done, axis=0)
-    assert float(jnp.sum(trs.done)) == 0  # (no episode ends this early: no truncation term)
-    expect = float(l0) - 0.5 * c.hp.gamma**2 * float(jnp.mean(alive * q))
-    assert float(l1) == pytest.approx(expect, rel=1e-4, abs=1e-6)
+    expect = float(loss) - 0.5 * c.hp.gamma**c.model_horizon * float(jnp.mean(q))
+    assert with_q == pytest.approx(expect, rel=1e-4, abs=1e-6)
 
 
 def test_fast_preset_model_actor_learns_on_a_small_budget(tmp_path):
