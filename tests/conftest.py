@@ -1,0 +1,24 @@
+"""Test-session setup: a persistent XLA compilation cache shared by the whole run.
+
+Many tests build the same small programs more than once (a run, its interrupted twin and
+its resume; the CLI in a subprocess), and on a 2-core CPU compiling them dominates the
+suite's time.  The cache lives in a fresh temporary directory for this session only (so no
+stale entry from another jax version is read), and the environment variables also reach
+the subprocesses that tests start.  Cached programs are the same XLA executables, so
+results do not change.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+
+_CACHE = tempfile.mkdtemp(prefix="ttd3_jax_xla_cache_")
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _CACHE)
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
+
+
+def pytest_unconfigure(config):
+    shutil.rmtree(_CACHE, ignore_errors=True)
