@@ -188,8 +188,7 @@ def validate(c: TrainConfig) -> None:
     need(c.warmup_transitions >= c.batch_size,
          f"warmup_transitions ({c.warmup_transitions}) must be >= batch_size ({c.batch_size}) so the "
          "first minibatch is drawn from a filled buffer")  # fmt: skip
-    h_env = max(1, c.model_horizon) if isinstance(c.model_horizon, int) else 1
-    budget = (c.total_transitions // c.num_envs - -(-c.warmup_transitions // c.num_envs)) // h_env
+    budget = (c.total_transitions // c.num_envs - c.warmup_steps) // c.env_steps_per_step
     need(budget >= c.epochs,
          f"total_transitions ({c.total_transitions}) leaves {max(budget, 0)} vector steps after warm-up, "
          f"fewer than epochs ({c.epochs}); raise total_transitions or lower epochs")  # fmt: skip
@@ -404,6 +403,19 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
 
     caps = uses_caps(c)
 
+    def _apply_actor_grad(ts: TrainState, hp: Hyper, g, frac) -> TrainState:
+        """One Adam step of the actor along ``g`` at learning rate ``hp.lr_actor · frac``."""
+        actor_opt = _with_lr(ts.actor_opt, hp.lr_actor * frac)
+        upd, actor_opt = _adam(hp.lr_actor).update(g, actor_opt, ts.actor)
+        return ts.replace(actor=optax.apply_updates(ts.actor, upd), actor_opt=actor_opt)
+
+    def _polyak(ts: TrainState, hp: Hyper) -> TrainState:
+        """Move both target networks a step ``hp.tau`` towards the current ones."""
+        return ts.replace(
+            target_actor=optax.incremental_update(ts.actor, ts.target_actor, hp.tau),
+            target_critic=optax.incremental_update(ts.critic, ts.target_critic, hp.tau),
+        )
+
     def _update(ts: TrainState, hp: Hyper, key: jax.Array, j: jax.Array):
         """One critic step, the σ update and, every d-th update, the actor + target step.
 
@@ -437,26 +449,11 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
         )
         ts = ts.replace(critic=critic, critic_opt=critic_opt, noise=noise, n_upd=n_upd)
 
-        def target_step(ts):  # model_horizon > 0: the actor was updated by the rollout
-            return ts.replace(
-                target_actor=optax.incremental_update(ts.actor, ts.target_actor, hp.tau),
-                target_critic=optax.incremental_update(ts.critic, ts.target_critic, hp.tau),
-            ), jnp.full((), jnp.nan)
-
         def actor_step(ts):
-            if c.model_horizon > 0:
-                return target_step(ts)
+            if c.model_horizon > 0:  # the rollout already updated the actor: targets only
+                return _polyak(ts, hp), jnp.full((), jnp.nan)
             a_loss, g = jax.value_and_grad(actor_loss)(ts.actor, nets, ts.critic, batch, k_smooth, hp, caps)
-            actor_opt = _with_lr(ts.actor_opt, hp.lr_actor * frac)
-            upd, actor_opt = _adam(hp.lr_actor).update(g, actor_opt, ts.actor)
-            actor = optax.apply_updates(ts.actor, upd)
-            ts = ts.replace(
-                actor=actor,
-                actor_opt=actor_opt,
-                target_actor=optax.incremental_update(actor, ts.target_actor, hp.tau),
-                target_critic=optax.incremental_update(ts.critic, ts.target_critic, hp.tau),
-            )
-            return ts, a_loss
+            return _polyak(_apply_actor_grad(ts, hp, g, frac), hp), a_loss
 
         if c.updates_per_step % c.policy_delay == 0:
             due = (j + 1) % c.policy_delay == 0
@@ -506,10 +503,8 @@ def make_trainer(c: TrainConfig, on_progress: Callable[[int], None] | None = Non
         norm = jnp.sqrt(sum(jnp.sum(x * x) for x in jax.tree.leaves(g)))
         scale = jnp.minimum(1.0, hp.model_grad_clip / (norm + 1e-12))
         g = jax.tree.map(lambda x: x * scale, g)
-        actor_opt = _with_lr(ts.actor_opt, hp.lr_actor * lr_fraction(c, ts.n_upd))
-        upd, actor_opt = _adam(hp.lr_actor).update(g, actor_opt, ts.actor)
-        ts = ts.replace(actor=optax.apply_updates(ts.actor, upd), actor_opt=actor_opt,
-                        env_state=env_state, ep_return=ep_return)  # fmt: skip
+        ts = _apply_actor_grad(ts, hp, g, lr_fraction(c, ts.n_upd))
+        ts = ts.replace(env_state=env_state, ep_return=ep_return)
         ts = jax.lax.scan(lambda t, tr: (_store(t, tr), None), ts, trs)[0]
         return ts, a_loss, fin
 
