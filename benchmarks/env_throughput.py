@@ -14,6 +14,10 @@ Cases:
                the spiral formula, selected by track kind)
   env_nominal  env.step on training-mixture tracks, no wind, no observation noise
   env_paper    env.step with the paper preset's training wind (OU, one normal draw per step)
+  env_before   env_nominal as it was before the fusion fix of 2026-12-01 (finiteness by
+               jnp.sum, a reduction per state leaf), for the before/after ratio
+  env_paper_jaxrng  env_paper with the wind drawn by jax.random instead of ttd3_jax.rng
+               (the same numbers; Threefry as jax's rolled loop), for the before/after ratio
 """
 
 from __future__ import annotations
@@ -25,13 +29,45 @@ import json
 import os
 import platform
 import time
+import types
 
 import jax
 import jax.numpy as jnp
 
+import ttd3_jax.env as env_module
 from ttd3_jax import trajectories as tr
 from ttd3_jax.dynamics import rk4_step
 from ttd3_jax.env import TrackingEnv, action_to_control, make_config
+
+
+class _EnvBefore(TrackingEnv):
+    """A former form of the env step, for before/after ratios: ``env.step`` traced with
+    some of ``ttd3_jax.env``'s module functions swapped back (the step is only traced, so
+    swapping for the trace is enough)."""
+
+    swaps: dict = {}
+
+    def step(self, state, action):
+        saved = {name: getattr(env_module, name) for name in self.swaps if hasattr(env_module, name)}
+        try:
+            for name in saved:
+                setattr(env_module, name, self.swaps[name])
+            return super().step(state, action)
+        finally:
+            for name, fn in saved.items():
+                setattr(env_module, name, fn)
+
+
+class _FusionBefore(_EnvBefore):
+    """Before 2026-12-01: the finiteness check by ``jnp.sum`` (a reduction per leaf)."""
+
+    swaps = {"_finite": lambda x: jnp.isfinite(sum(jnp.sum(leaf) for leaf in jax.tree.leaves(x)))}
+
+
+class _JaxRngBefore(_EnvBefore):
+    """Before 2026-12-01: wind drawn with jax.random (Threefry as a rolled loop on CPU)."""
+
+    swaps = {"rng": types.SimpleNamespace(split=jax.random.split, normal=jax.random.normal)}
 
 
 def rk4_case(cfg, n_envs, n_steps):
@@ -47,9 +83,9 @@ def rk4_case(cfg, n_envs, n_steps):
     return run, quad0
 
 
-def _reset(cfg, n_envs):
+def _reset(cfg, n_envs, env_cls=TrackingEnv):
     """The env and ``n_envs`` reset states (fixed seed)."""
-    env = TrackingEnv(cfg)
+    env = env_cls(cfg)
     return env, jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), n_envs))
 
 
@@ -69,8 +105,8 @@ def lookup_case(cfg, n_envs, n_steps):
     return run, s0.pipeline_state.k
 
 
-def env_case(cfg, n_envs, n_steps):
-    env, s0 = _reset(cfg, n_envs)
+def env_case(cfg, n_envs, n_steps, env_cls=TrackingEnv):
+    env, s0 = _reset(cfg, n_envs, env_cls)
     a = jax.random.uniform(jax.random.PRNGKey(1), (n_envs, 4), minval=-0.05, maxval=0.05)
     a = a.at[:, 0].add(0.4715)
 
@@ -108,6 +144,10 @@ def main(argv=None):
         "ref_lookup": lookup_case(dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps),
         "env_nominal": env_case(dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps),
         "env_paper": env_case(base, args.envs, args.steps),
+        "env_before": env_case(
+            dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps, _FusionBefore
+        ),
+        "env_paper_jaxrng": env_case(base, args.envs, args.steps, _JaxRngBefore),
     }
     compiled, compile_s = {}, {}
     for name, (fn, x0) in cases.items():
@@ -127,12 +167,12 @@ def main(argv=None):
     print(
         f"device={dev.platform} ({dev.device_kind}) cpus={os.cpu_count()} envs={args.envs} steps={args.steps}"
     )
-    print(f"{'case':<12} {'compile s':>9} {'run s':>8} {'env-steps/s':>12} {'x rk4':>6}")
+    print(f"{'case':<16} {'compile s':>9} {'run s':>8} {'env-steps/s':>12} {'x rk4':>6}")
     rows = []
     for name in cases:
         sps = n / best[name]
         ratio = best[name] / best["rk4"]
-        print(f"{name:<12} {compile_s[name]:>9.2f} {best[name]:>8.4f} {sps:>12.3e} {ratio:>6.2f}")
+        print(f"{name:<16} {compile_s[name]:>9.2f} {best[name]:>8.4f} {sps:>12.3e} {ratio:>6.2f}")
         rows.append(
             dict(case=name, compile_s=compile_s[name], run_s=best[name], steps_per_s=sps, ratio_vs_rk4=ratio)
         )

@@ -19,6 +19,9 @@ Cases (quadrotor, ``fast_dpg`` preset, the TD3 actor update through the critic, 
                   of the static CAPS switch's absence (before/after of that change)
   model_h50       the ``fast`` preset: per vector step a 50-step differentiable rollout of
                   the 64 envs (the actor update), then 16 critic updates
+  fast_jaxrng, model_h50_jaxrng   fast / model_h50 with the env's wind drawn by jax.random
+                  instead of ttd3_jax.rng (the same numbers; jax's Threefry is a rolled loop
+                  on CPU): the before/after of that change
 
 ``--large`` (for a GPU) replaces the CPU study with thousands of envs:
   fast                    the ``fast_dpg`` preset as above (the reference)
@@ -31,16 +34,31 @@ Cases (quadrotor, ``fast_dpg`` preset, the TD3 actor update through the critic, 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import datetime
 import json
 import os
 import platform
 import time
+import types
 
 import jax
 
+import ttd3_jax.env as env_module
 from ttd3_jax.train import make_trainer, preset, seed_keys
+
+JAX_RNG = types.SimpleNamespace(split=jax.random.split, normal=jax.random.normal)
+
+
+@contextlib.contextmanager
+def env_rng(module):
+    """Trace the env with ``module`` as its ``rng`` (only traced, so this is enough)."""
+    saved, env_module.rng = env_module.rng, module
+    try:
+        yield
+    finally:
+        env_module.rng = saved
 
 
 def large_cases() -> dict:
@@ -86,13 +104,20 @@ def cases(quick: bool) -> dict:
         "seeds4": (cfg(num_seeds=4, total=steps // 2), True),
         # the fast preset itself: a 50-step differentiable rollout (the actor update) per vector step
         "model_h50": (model, False),
+        "fast_jaxrng": (cfg(), False, JAX_RNG),
+        "model_h50_jaxrng": (model, False, JAX_RNG),
     }
     if quick:
         out = {k: out[k] for k in ("fast", "fast_vmap1", "model_h50")}
     return out
 
 
-def build(c, vmapped: bool):
+def build(c, vmapped: bool, rng=None):
+    with env_rng(rng or env_module.rng):
+        return _build(c, vmapped)
+
+
+def _build(c, vmapped: bool):
     t = make_trainer(c)
     keys = seed_keys(c)
     if vmapped:
@@ -128,8 +153,8 @@ def main(argv=None):
         if bad:
             ap.error(f"unknown case(s) {bad}; allowed: {sorted(chosen)}")
         chosen = {k: v for k, v in chosen.items() if k in args.only or k == "fast"}  # fast: the reference
-    for name, (c, vmapped) in chosen.items():
-        built[name] = (c, *build(c, vmapped))
+    for name, (c, *how) in chosen.items():
+        built[name] = (c, *build(c, *how))
     best = {name: float("inf") for name in built}
     for _ in range(args.repeats):
         for name, (c, fn, ts, _) in built.items():
