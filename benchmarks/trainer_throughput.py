@@ -19,6 +19,7 @@ Cases (quadrotor, ``fast_dpg`` preset, the TD3 actor update through the critic, 
                   of the static CAPS switch's absence (before/after of that change)
   model_h50       the ``fast`` preset: per vector step a 50-step differentiable rollout of
                   the 64 envs (the actor update), then 16 critic updates
+  model_h50_utd1  model_h50 with 1 critic update per vector step instead of 16
   fast_jaxrng, model_h50_jaxrng   fast / model_h50 with the env's wind drawn by jax.random
                   instead of ttd3_jax.rng (the same numbers; jax's Threefry is a rolled loop
                   on CPU): the before/after of that change
@@ -104,6 +105,9 @@ def cases(quick: bool) -> dict:
         "seeds4": (cfg(num_seeds=4, total=steps // 2), True),
         # the fast preset itself: a 50-step differentiable rollout (the actor update) per vector step
         "model_h50": (model, False),
+        # the same with one critic update per vector step instead of 16 (the actor does not use
+        # the critics at hp.model_bootstrap = 0; T-TD3's sigma is still updated per critic update)
+        "model_h50_utd1": (dataclasses.replace(model, updates_per_step=1), False),
         "fast_jaxrng": (cfg(), False, JAX_RNG),
         "model_h50_jaxrng": (model, False, JAX_RNG),
     }
