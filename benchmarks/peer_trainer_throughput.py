@@ -171,7 +171,7 @@ def build_ours(env: str, hidden: int, steps: int, num_envs: int = 1, utd: int = 
 
     from ttd3_jax import train as T
 
-    if preset:  # a training preset as it is (64 envs x 16 updates, 64-64, practical env), `steps` vector steps
+    if preset:  # a training preset as it is (64 envs x 16 updates, 64-64); `steps` vector steps
         c = T.preset(preset, epochs=1, warmup_transitions=4096, buffer_size=BUFFER)
         c = T.preset(
             preset,

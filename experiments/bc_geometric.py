@@ -144,8 +144,7 @@ def then_ttd3(actor, stats, hidden, frozen: int, full: int, quick: bool, t0: flo
     ts = jax.jit(t.init)(T.seed_keys(c)[0], c.hp)
     big = 1e12  # a count this large freezes the running statistics
     frozen_stats = nrm.ObsStats(count=jnp.asarray(big), mean=stats.mean, m2=stats.m2 / stats.count * big)
-    ts = ts.replace(actor=actor, target_actor=actor, actor_opt=T._adam(c.hp.lr_actor).init(actor),
-                    obs_stats=frozen_stats)  # fmt: skip
+    ts = T.with_actor(ts, actor, c.hp).replace(obs_stats=frozen_stats)
     evaluate, epoch = jax.jit(t.evaluate), jax.jit(t.epoch)
     no_actor = c.hp.replace(lr_actor=0.0)
     print(f"T-TD3 (fast_dpg preset) from the clone: {frozen} epoch(s) critic-only, then {full} in full")

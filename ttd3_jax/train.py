@@ -276,6 +276,12 @@ def _adam(lr):
     return optax.inject_hyperparams(optax.adam)(learning_rate=lr)
 
 
+def with_actor(ts: TrainState, actor, hp: Hyper) -> TrainState:
+    """``ts`` with ``actor`` as its policy (e.g. a behaviour-cloned one): the target actor set
+    to it and a fresh Adam state for it."""
+    return ts.replace(actor=actor, target_actor=actor, actor_opt=_adam(hp.lr_actor).init(actor))
+
+
 def _with_lr(opt_state, lr):
     """The optimiser state with its (injected) learning rate set to ``lr``."""
     return opt_state._replace(hyperparams={**opt_state.hyperparams, "learning_rate": lr})
