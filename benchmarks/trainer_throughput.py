@@ -14,6 +14,7 @@ Cases (quadrotor, ``fast_dpg`` preset, the TD3 actor update through the critic, 
   envs16_utd16    16 envs x 16 updates: one update per transition
   envs256_utd16   256 envs x 16 updates: collection-heavy
   net256          256-256 networks (the paper's width)
+  batch1024       minibatches of 1024 instead of 256 (4x the samples per update)
   seeds4          4 seeds vmapped in one program (per-seed figures are the total / 4)
   fast_caps, net256_caps   fast / net256 with the CAPS actor terms compiled in: the cost
                   of the static CAPS switch's absence (before/after of that change)
@@ -98,6 +99,7 @@ def cases(quick: bool) -> dict:
         "envs16_utd16": (cfg(num_envs=16, total=steps // 4), False),
         "envs256_utd16": (cfg(num_envs=256, total=steps * 4), False),
         "net256": (cfg(hidden=(256, 256), total=steps // 4), False),
+        "batch1024": (cfg(batch_size=1024, total=steps // 2), False),
         # the actor loss with the CAPS terms compiled in (as every run had before the static
         # switch; a negligible weight, so the same work as a real CAPS run)
         "fast_caps": (cfg(hp=caps_hp), False),
@@ -170,7 +172,7 @@ def main(argv=None):
     print(f"device={dev.platform} ({dev.device_kind}) cpus={os.cpu_count()} jax={jax.__version__}")
     print(
         f"{'case':<22} {'envs':>5} {'UTD':>4} {'hidden':>8} {'seeds':>5} {'compile s':>9} {'run s':>7} "
-        f"{'trans/s':>9} {'upd/s':>8} {'x fast':>6}"
+        f"{'trans/s':>9} {'upd/s':>8} {'x fast':>6} {'samples/s':>9}"
     )
     fc = built["fast"][0]
     fast_upd = fc.steps_per_epoch * fc.updates_per_step / best["fast"]
@@ -188,13 +190,15 @@ def main(argv=None):
             run_s=best[name],
             transitions_per_s=trans / best[name],
             updates_per_s=upd / best[name],
+            batch_size=c.batch_size,
+            samples_per_s=upd * c.batch_size / best[name],  # minibatch rows through the critic update
         )
         row["updates_per_s_vs_fast"] = row["updates_per_s"] / fast_upd
         rows.append(row)
         print(
             f"{name:<22} {c.num_envs:>5} {c.updates_per_step:>4} {'-'.join(map(str, c.hidden)):>8} "
             f"{c.num_seeds:>5} {comp:>9.1f} {best[name]:>7.2f} {row['transitions_per_s']:>9.3g} "
-            f"{row['updates_per_s']:>8.3g} {row['updates_per_s_vs_fast']:>6.2f}"
+            f"{row['updates_per_s']:>8.3g} {row['updates_per_s_vs_fast']:>6.2f} {row['samples_per_s']:>9.3g}"
         )
     record = dict(
         date=datetime.datetime.now().isoformat(timespec="seconds"),
