@@ -524,10 +524,13 @@ class TrackingEnv(Env):
         x = ps.quad
         p, v, q = x.p, x.v, x.q
         if c.obs_noise_pos > 0 or c.obs_noise_vel > 0 or c.obs_noise_quat > 0:
-            key, kp, kv, kq = rng.split(ps.key, 4)
-            p = p + c.obs_noise_pos * rng.normal(kp, (3,), p.dtype)
-            v = v + c.obs_noise_vel * rng.normal(kv, (3,), p.dtype)
-            q = q + c.obs_noise_quat * rng.normal(kq, (4,), p.dtype)
+            # jax.random here, not ttd3_jax.rng: the same draws, but fused with this arithmetic
+            # they change the last bit of a few observations (tests/test_rng.py), and this runs
+            # once per env step (robustness evaluation), not once per physics step
+            key, kp, kv, kq = jax.random.split(ps.key, 4)
+            p = p + c.obs_noise_pos * jax.random.normal(kp, (3,), p.dtype)
+            v = v + c.obs_noise_vel * jax.random.normal(kv, (3,), p.dtype)
+            q = q + c.obs_noise_quat * jax.random.normal(kq, (4,), p.dtype)
             q = q / jnp.linalg.norm(q)
             ps = ps.replace(key=key)
         if c.canonical_q_obs:

@@ -8,10 +8,13 @@ written out round by round, as a jax PRNG implementation, so that jax's own
 ``split`` / ``normal`` code runs on it and the whole draw fuses into the step.
 
 The draws are bit-for-bit those of ``jax.random.split`` / ``jax.random.normal`` on the
-same raw ``uint32[2]`` key (``tests/test_env.py`` checks this), so nothing that used
-jax's functions before changes.  The equality holds under jax's default
-``jax_threefry_partitionable=True``; with that flag off, or for typed keys, the
-functions here simply call ``jax.random``.
+same raw ``uint32[2]`` key (``tests/test_rng.py`` checks this).  Arithmetic on them can
+still round differently in the last bit, because XLA fuses it with the draw; the env's
+wind is checked to come out identical, its observation noise did not and stays on
+``jax.random``.  The equality holds under jax's default
+``jax_threefry_partitionable=True``; with that flag off, for typed keys, or on a jax
+without ``jax.extend.random.define_prng_impl``, the functions here simply call
+``jax.random``.
 """
 
 from __future__ import annotations
@@ -22,7 +25,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.extend import random as jex_random
 
 _ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
 
@@ -67,23 +69,35 @@ def _random_bits(key: jax.Array, bit_width: int, shape: tuple[int, ...]) -> jax.
     return bits if bit_width == 32 else bits.astype(np.dtype(f"uint{bit_width}"))
 
 
-_jax_threefry = jex_random.threefry_prng_impl
-_FUSED = jex_random.define_prng_impl(
-    key_shape=(2,),
-    seed=_jax_threefry.seed,
-    split=_split,
-    random_bits=_random_bits,
-    fold_in=_jax_threefry.fold_in,
-    name="threefry2x32_unrolled",
-    tag="fru",
-)
+def _define_impl():
+    """The unrolled impl, or ``None`` where this jax lacks the public hooks (then every
+    function here falls back to ``jax.random``)."""
+    try:
+        from jax.extend import random as jex_random
+
+        base = jex_random.threefry_prng_impl
+        return jex_random.define_prng_impl(
+            key_shape=(2,),
+            seed=base.seed,
+            split=_split,
+            random_bits=_random_bits,
+            fold_in=base.fold_in,
+            name="threefry2x32_unrolled",
+            tag="fru",
+        )
+    except (ImportError, AttributeError, TypeError):
+        return None
+
+
+_FUSED = _define_impl()
 
 
 def _raw_threefry(key: jax.Array) -> bool:
     """True when ``key`` is a raw uint32[2] Threefry key and jax draws from it the way
     this module does (``jax_threefry_partitionable`` on, Threefry the default impl)."""
     return (
-        key.dtype == jnp.uint32
+        _FUSED is not None
+        and key.dtype == jnp.uint32
         and key.shape[-1:] == (2,)
         and bool(jax.config.jax_threefry_partitionable)
         and jax.config.jax_default_prng_impl == "threefry2x32"
