@@ -99,7 +99,6 @@ def cases(quick: bool) -> dict:
         "envs16_utd16": (cfg(num_envs=16, total=steps // 4), False),
         "envs256_utd16": (cfg(num_envs=256, total=steps * 4), False),
         "net256": (cfg(hidden=(256, 256), total=steps // 4), False),
-        "batch1024": (cfg(batch_size=1024, total=steps // 2), False),
         # the actor loss with the CAPS terms compiled in (as every run had before the static
         # switch; a negligible weight, so the same work as a real CAPS run)
         "fast_caps": (cfg(hp=caps_hp), False),
@@ -114,7 +113,8 @@ def cases(quick: bool) -> dict:
         "model_h50_jaxrng": (model, False, JAX_RNG),
     }
     if quick:
-        out = {k: out[k] for k in ("fast", "fast_vmap1", "model_h50")}
+        return {k: out[k] for k in ("fast", "fast_vmap1", "model_h50")}
+    out["batch1024"] = (cfg(batch_size=1024, total=steps // 2), False)  # needs warm-up >= 1024
     return out
 
 
