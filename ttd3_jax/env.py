@@ -559,8 +559,8 @@ class TrackingEnv(Env):
             parts = [p, v, q, p_ahead, p_ahead - p, err[None]]
         if self._rates_in_obs:
             parts.append(x.w)
-        # non-finite entries (a diverged state) read as 0; masked part by part, so that
-        # the mask fuses with each part's producer instead of a second pass over obs
+        # non-finite entries (a diverged state) read as 0.  Masking part by part would fuse
+        # better on CPU but changes trained results (docs/performance.md, "Tried and not kept")
         obs = jnp.concatenate(parts)
         return jnp.where(jnp.isfinite(obs), obs, 0.0), ps
 
