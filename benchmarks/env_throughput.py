@@ -6,6 +6,7 @@ vehicles.  Compile time is reported apart from run time; run time is the best of
 
     python benchmarks/env_throughput.py             # 1024 envs x 1000 steps
     python benchmarks/env_throughput.py --quick     # smoke run (CI)
+    python benchmarks/env_throughput.py --ablate    # + what limits env_nominal's ratio
 
 Cases:
   rk4          bare model: vmapped rk4_step with fixed controls (the floor)
@@ -18,6 +19,18 @@ Cases:
                jnp.sum, a reduction per state leaf), for the before/after ratio
   env_paper_jaxrng  env_paper with the wind drawn by jax.random instead of ttd3_jax.rng
                (the same numbers; Threefry as jax's rolled loop), for the before/after ratio
+  env_mask_before  env_nominal with the observation's non-finite mask as it was until the
+               mask fix of 2026-12-01 (``jnp.where(jnp.isfinite(obs), obs, 0)``: it reads the
+               concatenated observation twice, so XLA:CPU writes it out first), for the
+               before/after ratio
+
+Ablations (``--ablate``; not envs anyone should use, they show where env_nominal's time
+goes beyond the RK4 step):
+  abl_no_lookup    env_nominal with the reference lookup replaced by a cheap stand-in of the
+               same shape (no gather, no sin/cos); the observation is built as usual
+  abl_no_obs       env_nominal with the 17-D observation replaced by a one-entry stand-in
+               (the lookup at k+1 and the reward stay)
+  abl_neither      both: RK4, the tracking error, reward, crash test and metrics remain
 """
 
 from __future__ import annotations
@@ -68,6 +81,39 @@ class _JaxRngBefore(_EnvBefore):
     """Before 2026-12-01: wind drawn with jax.random (Threefry as a rolled loop on CPU)."""
 
     swaps = {"rng": types.SimpleNamespace(split=jax.random.split, normal=jax.random.normal)}
+
+
+class _MaskBefore(_EnvBefore):
+    """Until the mask fix of 2026-12-01: the observation mask by ``jnp.where`` (two reads of the obs)."""
+
+    swaps = {"_zero_non_finite": lambda obs: jnp.where(jnp.isfinite(obs), obs, 0.0)}
+
+
+def _stand_in_position(track, k, dt):
+    """Same shape as ``trajectories.position`` but no gather and no sin/cos."""
+    return track.seg[..., 0, 0, :] + k.astype(track.seg.dtype) * dt
+
+
+class _NoLookup(TrackingEnv):
+    def observe(self, ps, p_ref_now=None):
+        real = env_module.tr.position
+        env_module.tr.position = _stand_in_position
+        try:
+            return super().observe(ps, p_ref_now)
+        finally:
+            env_module.tr.position = real
+
+
+class _NoObs(TrackingEnv):
+    position = staticmethod(tr.position)
+
+    def observe(self, ps, p_ref_now=None):
+        ps = ps.replace(ref_next=self.position(ps.track, ps.k + 1, self.config.dt))
+        return jnp.zeros(17, ps.quad.p.dtype).at[0].set(ps.quad.p[0]), ps
+
+
+class _Neither(_NoObs):
+    position = staticmethod(_stand_in_position)
 
 
 def rk4_case(cfg, n_envs, n_steps):
@@ -131,6 +177,7 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--quick", action="store_true", help="tiny sizes, to keep the script alive in CI")
+    ap.add_argument("--ablate", action="store_true", help="add the abl_* cases (see above)")
     ap.add_argument("--out", default="benchmarks/results/env_throughput.jsonl")
     args = ap.parse_args(argv)
     if args.quick:
@@ -148,7 +195,14 @@ def main(argv=None):
             dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps, _FusionBefore
         ),
         "env_paper_jaxrng": env_case(base, args.envs, args.steps, _JaxRngBefore),
+        "env_mask_before": env_case(
+            dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps, _MaskBefore
+        ),
     }
+    if args.ablate or args.quick:
+        nominal = dataclasses.replace(base, wind_sigma=0.0)
+        for name, cls in (("abl_no_lookup", _NoLookup), ("abl_no_obs", _NoObs), ("abl_neither", _Neither)):
+            cases[name] = env_case(nominal, args.envs, args.steps, cls)
     compiled, compile_s = {}, {}
     for name, (fn, x0) in cases.items():
         t0 = time.perf_counter()

@@ -1,0 +1,115 @@
+"""Bit-level fingerprints of env rollouts and of training, to check a speed change.
+
+A change made for speed should leave every result as it was.  XLA's fusion choices can
+move the last bit of a float even where the maths is unchanged, and training is chaotic:
+one changed bit anywhere gives a different policy, and every trained figure in docs/ would
+then need re-running.  Run this before and after a change and compare the lines:
+
+    python benchmarks/fingerprint.py > /tmp/before.txt     # on the old code
+    python benchmarks/fingerprint.py > /tmp/after.txt      # on the new code
+    diff /tmp/before.txt /tmp/after.txt                    # empty: bit-identical
+    python benchmarks/fingerprint.py --quick               # env parts only (CI smoke run)
+
+``benchmarks/results/fingerprint.txt`` holds the lines of the committed code on the
+project's 2-core CPU VM (its first line names jax and the platform; another jax or CPU
+may round differently, so compare like with like).
+
+Each line is ``name sha256-prefix``:
+
+  env_*       obs, reward, done, metrics and the carried state of a 64-env x 300-step
+              rollout (paper preset with its wind, the practical preset, an eval config)
+  train_*     the whole train state after init + one epoch of the ``fast`` / ``fast_dpg``
+              presets, run exactly as ``python -m ttd3_jax.train`` runs them
+              (``sharding.runner_fns``), and that state's evaluation metrics
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import os
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ttd3_jax import sharding
+from ttd3_jax.env import TrackingEnv, make_config
+from ttd3_jax.runner import per_seed
+from ttd3_jax.train import make_trainer, preset, seed_keys
+
+
+def digest(tree) -> str:
+    """sha256 (first 16 hex digits) of every leaf's bytes, in tree order."""
+    h = hashlib.sha256()
+    for leaf in jax.tree.leaves(tree):
+        a = np.asarray(jax.device_get(leaf))
+        if jnp.issubdtype(a.dtype, jax.dtypes.prng_key):
+            a = np.asarray(jax.random.key_data(leaf))
+        h.update(str((a.shape, a.dtype)).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:16]
+
+
+def env_rollout(cfg, n_envs: int = 64, n_steps: int = 300):
+    """Everything a 64-env rollout under fixed pseudo-random actions produces."""
+    env = TrackingEnv(cfg)
+    s0 = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), n_envs))
+    acts = jax.random.uniform(jax.random.PRNGKey(1), (n_steps, n_envs, 4), minval=-1.0, maxval=1.0)
+
+    @jax.jit
+    def run(s, acts):
+        def body(s, a):
+            s = jax.vmap(env.step)(s, a)
+            return s, (s.obs, s.reward, s.done, s.metrics, s.info)
+
+        return jax.lax.scan(body, s, acts)
+
+    return run(s0, acts)
+
+
+def env_cases():
+    paper = make_config("paper")
+    practical = make_config("practical")
+    return {
+        "env_paper": paper,
+        "env_paper_nowind": dataclasses.replace(paper, wind_sigma=0.0),
+        "env_practical": practical,
+        "env_practical_fast": dataclasses.replace(practical, hover_centered_thrust=True),
+        "env_eval_spiral": practical.for_eval("spiral_rt", wind_sigma=0.5),
+        "env_obs_noise": dataclasses.replace(
+            paper, obs_noise_pos=0.01, obs_noise_vel=0.02, obs_noise_quat=0.01
+        ),
+    }
+
+
+def train_fingerprint(name: str):
+    """``(state digest, eval digest)`` after init and the first epoch, as the CLI runs them."""
+    c = preset(name)
+    t = make_trainer(c)
+    init_fn, epoch_fn, eval_fn, _ = sharding.runner_fns(t, c, per_seed)
+    ts = init_fn(seed_keys(c), c.hp)
+    ts, m = epoch_fn(ts, c.hp)
+    return digest((ts, m)), digest(eval_fn(ts))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="env rollouts only")
+    ap.add_argument("--train", nargs="*", default=["fast", "fast_dpg"], help="training presets to run")
+    args = ap.parse_args(argv)
+    print(f"# jax {jax.__version__}, {jax.devices()[0].platform}, cpus={os.cpu_count()}")
+    for name, cfg in env_cases().items():
+        print(name, digest(env_rollout(cfg)), flush=True)
+    if not args.quick:
+        for name in args.train:
+            state, ev = train_fingerprint(name)
+            print(f"train_{name}", state, flush=True)
+            print(f"train_{name}_eval", ev, flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
