@@ -4,6 +4,9 @@ checkpoint) beats the paper's T-TD3 on both test tracks: Spiral-RT Σ‖e‖ ≤
 (seed 0) Σ‖e‖ ≤ 398.74.
 
 Each seed is a fresh process, so Python start-up, compilation and warm-up are included.
+Each seed starts with an empty XLA compilation cache (``--compile-cache`` in a fresh
+directory: "cold"). Then seed 0 runs once more on the cache its first run filled ("warm"),
+as any later launch of the same configuration would.
 The script reads the CLI's per-epoch lines as they are printed and stamps each with the
 time since launch. When no epoch beats the paper, it reports that, with the best epoch on
 each track and when it came. Prints a table and appends a record to
@@ -30,10 +33,11 @@ PAPER = {"spiral": 25.99, "los": 398.74}  # the paper's T-TD3, Σ‖e‖ in m
 LINE = re.compile(r"epoch\s+(\d+)/(\d+).*Spiral-RT\s+([-+0-9.eE]+|nan)\s+LOS-RT\s+([-+0-9.eE]+|nan)")
 
 
-def run_seed(seed: int, extra: list[str], out: str) -> dict:
-    """Launch one training run and time its epochs from launch."""
+def run_seed(seed: int, extra: list[str], out: str, cache: str, warm: bool = False) -> dict:
+    """Launch one training run with XLA compilation cache ``cache`` and time its epochs
+    from launch (``warm``: the cache already holds this configuration's programs)."""
     cmd = [sys.executable, "-m", "ttd3_jax.train", "--preset", "fast", "--seed", str(seed), "--out", out]
-    cmd += extra
+    cmd += ["--compile-cache", cache, *extra]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
     epochs, tail = [], []
@@ -58,6 +62,7 @@ def run_seed(seed: int, extra: list[str], out: str) -> dict:
     best_los = min(epochs, key=lambda e: e["los"])
     return dict(
         seed=seed,
+        cache="warm" if warm else "cold",
         total_s=total,
         first_epoch_s=epochs[0]["t"],
         epochs=len(epochs),
@@ -84,7 +89,8 @@ def main(argv=None) -> int:
     extra = ["--total-transitions", "20000", "--epochs", "2"] if args.quick else []
     seeds = range(1 if args.quick else args.seeds)
     with tempfile.TemporaryDirectory() as tmp:
-        rows = [run_seed(s, extra, tmp) for s in seeds]
+        rows = [run_seed(s, extra, tmp, os.path.join(tmp, f"xla-s{s}")) for s in seeds]
+        rows.append(run_seed(0, extra, tmp, os.path.join(tmp, "xla-s0"), warm=True))
 
     def f(x, spec="{:.0f}"):
         return "never" if x is None else spec.format(x)
@@ -92,21 +98,29 @@ def main(argv=None) -> int:
     machine = platform.processor() or platform.machine()
     print(f"machine: {machine}, {os.cpu_count()} cpus; paper T-TD3 {PAPER}")
     print(
-        f"{'seed':>4} {'beats paper at s':>16} {'first epoch s':>13} {'total s':>7} "
+        f"{'seed':>4} {'cache':>5} {'beats paper at s':>16} {'first epoch s':>13} {'total s':>7} "
         f"{'best Spiral (at s)':>19} {'best LOS (at s)':>16} {'final Spiral / LOS':>19}"
     )
     for r in rows:
         print(
-            f"{r['seed']:>4} {f(r['beat_paper_at_s']):>16} {r['first_epoch_s']:>13.0f} {r['total_s']:>7.0f} "
+            f"{r['seed']:>4} {r['cache']:>5} {f(r['beat_paper_at_s']):>16} "
+            f"{r['first_epoch_s']:>13.0f} {r['total_s']:>7.0f} "
             f"{r['best_spiral']:>11.1f} ({r['best_spiral_at_s']:>4.0f}) "
             f"{r['best_los']:>9.1f} ({r['best_los_at_s']:>4.0f}) "
             f"{r['final_spiral']:>9.1f} / {r['final_los']:.1f}"
         )
-    hits = [r["beat_paper_at_s"] for r in rows]
+    cold = [r for r in rows if r["cache"] == "cold"]
+    hits = [r["beat_paper_at_s"] for r in cold]
     if all(h is not None for h in hits):
-        print(f"all {len(rows)} seeds beat the paper; slowest at {max(hits):.0f} s (target <= 60 s)")
+        print(f"all {len(cold)} seeds beat the paper (cold); slowest at {max(hits):.0f} s (target <= 60 s)")
     else:
-        print(f"{sum(h is None for h in hits)} of {len(rows)} seeds never beat the paper within the budget")
+        print(f"{sum(h is None for h in hits)} of {len(cold)} seeds never beat the paper within the budget")
+    warm = rows[-1]
+    print(
+        f"seed 0 with a warm compilation cache: first epoch at {warm['first_epoch_s']:.0f} s "
+        f"(cold {rows[0]['first_epoch_s']:.0f} s); beats the paper "
+        + ("never" if warm["beat_paper_at_s"] is None else f"at {warm['beat_paper_at_s']:.0f} s")
+    )
     if args.out:
         rec = dict(
             date=datetime.datetime.now().isoformat(timespec="seconds"),

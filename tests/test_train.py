@@ -338,6 +338,8 @@ def test_sigkill_then_resume_finishes_the_run(tmp_path):
     )
     assert res.returncode == 0, res.stdout + res.stderr
     assert f"resumed {run_dir} at epoch {last}/4" in res.stdout
+    # the CLI uses $JAX_COMPILATION_CACHE_DIR (tests/conftest.py sets it) as its cache
+    assert f"XLA compilation cache: {os.environ['JAX_COMPILATION_CACHE_DIR']}" in res.stdout
     rows = read_metrics(str(run_dir))
     assert [int(r["epoch"]) for r in rows] == [1, 2, 3, 4]
     assert os.path.isfile(run_dir / "eval.json")
@@ -653,3 +655,55 @@ def test_fast_preset_model_actor_learns_on_a_small_budget(tmp_path):
     sp, los = float(row["spiral_tracking_error"]), float(row["los_tracking_error"])
     print(f"Spiral-RT {sp:.1f}, LOS-RT {los:.1f}")
     assert sp < 300 and los < 900, (sp, los)
+
+
+def test_compile_cache_default_and_bad_directory(tmp_path, monkeypatch):
+    from ttd3_jax.runner import default_compile_cache, use_compile_cache
+
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "env"))
+    assert default_compile_cache() == str(tmp_path / "env")
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert default_compile_cache() == str(tmp_path / "xdg" / "ttd3_jax" / "xla")
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    with pytest.raises(ValueError, match="a_file.*cannot be created.*--compile-cache none"):
+        use_compile_cache(str(blocker / "cache"))
+
+
+@pytest.mark.slow
+def test_cli_compile_cache_is_written_then_reused_with_identical_results(tmp_path):
+    """A second launch loads the first one's programs from --compile-cache DIR; the
+    results (all but the wall-clock columns) are identical."""
+    import csv
+    import subprocess
+    import sys
+
+    cache = tmp_path / "xla"
+    out = []
+    for i in range(2):
+        cmd = [
+            sys.executable,
+            "-m",
+            "ttd3_jax.train",
+            *TINY_CLI,
+            "--epochs",
+            "2",
+            "--total-transitions",
+            "512",
+        ]
+        cmd += ["--out", str(tmp_path / f"runs{i}"), "--compile-cache", str(cache)]
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+        assert res.returncode == 0, res.stdout + res.stderr
+        assert f"XLA compilation cache: {cache}" in res.stdout
+        if i == 0:
+            assert len(list(cache.iterdir())) > 0  # programs written
+        (metrics,) = (tmp_path / f"runs{i}").glob("*/metrics.csv")
+        with open(metrics) as fh:
+            out.append(
+                [
+                    {k: v for k, v in r.items() if k not in ("wall_s", "steps_per_s")}
+                    for r in csv.DictReader(fh)
+                ]
+            )
+    assert out[0] == out[1] and len(out[0]) == 2

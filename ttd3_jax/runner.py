@@ -89,6 +89,48 @@ def load_config(run_dir: str) -> TrainConfig:
     return c
 
 
+# --------------------------------------------------------------------------- compile cache
+
+COMPILE_CACHE_OFF = "none"
+
+
+def default_compile_cache() -> str:
+    """``$JAX_COMPILATION_CACHE_DIR`` if set, else ``$XDG_CACHE_HOME/ttd3_jax/xla``
+    (``~/.cache/ttd3_jax/xla``)."""
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return os.environ["JAX_COMPILATION_CACHE_DIR"]
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "ttd3_jax", "xla")
+
+
+def use_compile_cache(path: str | None = None) -> str | None:
+    """Turn on jax's persistent compilation cache in directory ``path`` for this process
+    (``None``: :func:`default_compile_cache`; ``"none"``: turn it off).  Returns the
+    directory in use, or ``None`` when off.
+
+    A later launch of the same programs (same configuration and shapes, another seed
+    included) then loads the compiled XLA executables instead of compiling them again:
+    about 25 s of the ``fast`` preset's start-up on 2 CPU cores.  A cached executable is
+    the one that was compiled, so results do not change.  Call it before anything is
+    compiled; the CLI does (``--compile-cache``)."""
+    if path is None:
+        path = default_compile_cache()
+    if path.strip().lower() == COMPILE_CACHE_OFF:
+        jax.config.update("jax_enable_compilation_cache", False)
+        return None
+    path = os.path.abspath(os.path.expanduser(path))
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as e:
+        raise ValueError(
+            f"compile cache directory {path!r} cannot be created ({e.strerror}); "
+            f"pass --compile-cache DIR with a writable DIR, or --compile-cache {COMPILE_CACHE_OFF}"
+        ) from e
+    jax.config.update("jax_enable_compilation_cache", True)
+    jax.config.update("jax_compilation_cache_dir", path)
+    return path
+
+
 def per_seed(fn, c: TrainConfig, in_axes: tuple):
     """``fn`` mapped over the leading seed axis of the arguments marked 0 in ``in_axes``.
 

@@ -735,24 +735,30 @@ def main(argv: list[str] | None = None) -> int:
     pre.add_argument("--preset", default="fast", choices=PRESETS)
     pre.add_argument("--out", default="runs")
     pre.add_argument("--resume", default=None)
+    pre.add_argument("--compile-cache", default=None)
     known, rest = pre.parse_known_args(argv)
-    from ttd3_jax.runner import TrainingDiverged, run
+    from ttd3_jax.runner import TrainingDiverged, run, use_compile_cache
 
     if known.resume is not None and rest:
         print(f"error: --resume continues the saved config; remove {' '.join(rest)}", file=sys.stderr)
         return 2
     try:
+        description = (
+            f"Train T-TD3 or TD3 (preset {known.preset!r}; defaults below are that preset's). Also: "
+            f"--preset {{{','.join(PRESETS)}}}, --out DIR (default runs), --resume RUN_DIR, "
+            "--compile-cache DIR|none (XLA compilation cache; default ~/.cache/ttd3_jax/xla)."
+        )
+        if known.resume is None:
+            # tyro reports a ValueError from TrainConfig validation itself and exits with status 2
+            cfg = tyro.cli(TrainConfig, default=preset(known.preset), args=rest, description=description)
+            if not any(a.startswith("--noise.schedule") for a in rest):
+                cfg = with_algo(cfg, cfg.algo)
+        cache = use_compile_cache(known.compile_cache)
+        note = " (--compile-cache none turns it off)" if cache else ""
+        print(f"XLA compilation cache: {cache or 'off'}{note}")
         if known.resume is not None:
             run(resume=known.resume)
             return 0
-        description = (
-            f"Train T-TD3 or TD3 (preset {known.preset!r}; defaults below are that preset's). Also: "
-            f"--preset {{{','.join(PRESETS)}}}, --out DIR (default runs), --resume RUN_DIR."
-        )
-        # tyro reports a ValueError from TrainConfig validation itself and exits with status 2
-        cfg = tyro.cli(TrainConfig, default=preset(known.preset), args=rest, description=description)
-        if not any(a.startswith("--noise.schedule") for a in rest):
-            cfg = with_algo(cfg, cfg.algo)
         run(cfg, out=known.out)
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
