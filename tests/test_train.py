@@ -669,6 +669,13 @@ def test_compile_cache_default_and_bad_directory(tmp_path, monkeypatch):
     blocker.write_text("")
     with pytest.raises(ValueError, match="a_file.*cannot be created.*--compile-cache none"):
         use_compile_cache(str(blocker / "cache"))
+    # an unwritable default only warns and turns the cache off (then back on for the suite)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(blocker))
+    try:
+        assert use_compile_cache() is None
+        assert not jax.config.jax_enable_compilation_cache
+    finally:
+        jax.config.update("jax_enable_compilation_cache", True)
 
 
 @pytest.mark.slow

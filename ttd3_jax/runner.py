@@ -106,13 +106,15 @@ def default_compile_cache() -> str:
 def use_compile_cache(path: str | None = None) -> str | None:
     """Turn on jax's persistent compilation cache in directory ``path`` for this process
     (``None``: :func:`default_compile_cache`; ``"none"``: turn it off).  Returns the
-    directory in use, or ``None`` when off.
+    directory in use, or ``None`` when off.  An explicit ``path`` that cannot be created is
+    a ``ValueError``; the default one only gives a warning (the run goes on without a cache).
 
     A later launch of the same programs (same configuration and shapes, another seed
     included) then loads the compiled XLA executables instead of compiling them again:
     about 25 s of the ``fast`` preset's start-up on 2 CPU cores.  A cached executable is
     the one that was compiled, so results do not change.  Call it before anything is
     compiled; the CLI does (``--compile-cache``)."""
+    chosen = path is not None
     if path is None:
         path = default_compile_cache()
     if path.strip().lower() == COMPILE_CACHE_OFF:
@@ -122,6 +124,10 @@ def use_compile_cache(path: str | None = None) -> str | None:
     try:
         os.makedirs(path, exist_ok=True)
     except OSError as e:
+        if not chosen:  # the default place is not writable here: run without a cache
+            _stderr(f"warning: no XLA compilation cache ({path!r}: {e.strerror}); pass --compile-cache DIR")
+            jax.config.update("jax_enable_compilation_cache", False)
+            return None
         raise ValueError(
             f"compile cache directory {path!r} cannot be created ({e.strerror}); "
             f"pass --compile-cache DIR with a writable DIR, or --compile-cache {COMPILE_CACHE_OFF}"
