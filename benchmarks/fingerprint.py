@@ -9,10 +9,12 @@ then need re-running.  Run this before and after a change and compare the lines:
     python benchmarks/fingerprint.py > /tmp/after.txt      # on the new code
     diff /tmp/before.txt /tmp/after.txt                    # empty: bit-identical
     python benchmarks/fingerprint.py --quick               # env parts only (CI smoke run)
+    python benchmarks/fingerprint.py --compare benchmarks/results/fingerprint.txt
 
 ``benchmarks/results/fingerprint.txt`` holds the lines of the committed code on the
 project's 2-core CPU VM (its first line names jax and the platform; another jax or CPU
-may round differently, so compare like with like).
+may round differently, so compare like with like).  ``--compare FILE`` checks each line
+against FILE and exits 1 naming the ones that differ.
 
 Each line is ``name sha256-prefix``:
 
@@ -99,15 +101,26 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="env rollouts only")
     ap.add_argument("--train", nargs="*", default=["fast", "fast_dpg"], help="training presets to run")
+    ap.add_argument("--compare", default=None, help="reference file of lines (see above)")
     args = ap.parse_args(argv)
+    want = {}
+    if args.compare:
+        with open(args.compare) as fh:
+            want = dict(line.split() for line in fh if line.strip() and not line.startswith("#"))
     print(f"# jax {jax.__version__}, {jax.devices()[0].platform}, cpus={os.cpu_count()}")
+    got = {}
     for name, cfg in env_cases().items():
-        print(name, digest(env_rollout(cfg)), flush=True)
+        got[name] = digest(env_rollout(cfg))
+        print(name, got[name], flush=True)
     if not args.quick:
         for name in args.train:
-            state, ev = train_fingerprint(name)
-            print(f"train_{name}", state, flush=True)
-            print(f"train_{name}_eval", ev, flush=True)
+            got[f"train_{name}"], got[f"train_{name}_eval"] = train_fingerprint(name)
+            print(f"train_{name}", got[f"train_{name}"], flush=True)
+            print(f"train_{name}_eval", got[f"train_{name}_eval"], flush=True)
+    if args.compare:
+        differ = sorted(k for k in got if k in want and got[k] != want[k])
+        print(f"{len(differ)} of {sum(k in want for k in got)} lines differ from {args.compare}", *differ)
+        return 1 if differ else 0
     return 0
 
 
