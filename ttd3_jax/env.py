@@ -559,8 +559,7 @@ class TrackingEnv(Env):
             parts = [p, v, q, p_ahead, p_ahead - p, err[None]]
         if self._rates_in_obs:
             parts.append(x.w)
-        # non-finite entries (a diverged state) read as 0.  Masking part by part would fuse
-        # better on CPU but changes trained results (docs/performance.md, "Tried and not kept")
+        # non-finite entries (a diverged state) read as 0, in one read of the concatenation
         return _zero_non_finite(jnp.concatenate(parts)), ps
 
 
