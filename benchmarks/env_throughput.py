@@ -94,14 +94,10 @@ def _stand_in_position(track, k, dt):
     return track.seg[..., 0, 0, :] + k.astype(track.seg.dtype) * dt
 
 
-class _NoLookup(TrackingEnv):
-    def observe(self, ps, p_ref_now=None):
-        real = env_module.tr.position
-        env_module.tr.position = _stand_in_position
-        try:
-            return super().observe(ps, p_ref_now)
-        finally:
-            env_module.tr.position = real
+class _NoLookup(_EnvBefore):
+    """``trajectories`` as the env step sees it, with ``position`` swapped for the stand-in."""
+
+    swaps = {"tr": types.SimpleNamespace(**{**vars(tr), "position": _stand_in_position})}
 
 
 class _NoObs(TrackingEnv):
