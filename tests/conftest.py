@@ -14,11 +14,19 @@ import os
 import shutil
 import tempfile
 
-_CACHE = tempfile.mkdtemp(prefix="ttd3_jax_xla_cache_")
-os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _CACHE)
+# created here unless the environment names one: pytest-xdist's workers inherit the
+# controller's, so that all of them share one cache (and only the controller removes it)
+_OWN = "JAX_COMPILATION_CACHE_DIR" not in os.environ
+if _OWN:
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="ttd3_jax_xla_cache_")
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
 
 
 def pytest_unconfigure(config):
-    shutil.rmtree(_CACHE, ignore_errors=True)
+    if _OWN:
+        shutil.rmtree(os.environ["JAX_COMPILATION_CACHE_DIR"], ignore_errors=True)
+
+
+def pytest_report_header(config):
+    return f"XLA compilation cache (shared by the workers): {os.environ['JAX_COMPILATION_CACHE_DIR']}"

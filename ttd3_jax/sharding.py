@@ -148,13 +148,22 @@ def state_shardings(state, mesh: Mesh, num_envs: int):
     return state.replace(**out)
 
 
+def _uncommitted(tree):
+    """``tree``'s arrays as uncommitted arrays on the default device, as ``jit`` returns them
+    from uncommitted inputs.  Orbax restores committed arrays, and ``jit`` lowers those with
+    a sharding annotation: the program differs from the fresh run's, so a resumed run would
+    compile its epoch again instead of finding it in the compilation cache."""
+    return jax.device_put(jax.device_get(tree))
+
+
 def runner_fns(trainer, c, per_seed: Callable, mesh: Mesh | None = None):
     """``(init_fn, epoch_fn, eval_fn, place)`` for :func:`ttd3_jax.runner.run`.
 
-    On one device these are the plain ``jit(per_seed(...))`` functions and ``place`` is the
-    identity.  With several devices, the seed axis is split over ``sweep`` and the env axis
-    over ``env`` (:func:`seed_env_mesh`); ``place(state)`` puts a restored state on the mesh.
-    Single process only: the runner reads metrics and checkpoints on its host."""
+    On one device these are the plain ``jit(per_seed(...))`` functions, and ``place(state)``
+    gives a restored state the placement of a fresh one (:func:`_uncommitted`).  With several
+    devices, the seed axis is split over ``sweep`` and the env axis over ``env``
+    (:func:`seed_env_mesh`); ``place(state)`` puts a restored state on the mesh.  Single
+    process only: the runner reads metrics and checkpoints on its host."""
     mesh = seed_env_mesh(c.num_seeds, c.num_envs) if mesh is None else mesh
     if c.num_seeds % mesh.shape[SWEEP]:
         raise ValueError(
@@ -164,7 +173,7 @@ def runner_fns(trainer, c, per_seed: Callable, mesh: Mesh | None = None):
     epoch = per_seed(trainer.epoch, c, (0, None))
     evaluate = per_seed(trainer.evaluate, c, (0,))
     if math.prod(mesh.devices.shape) == 1:
-        return jax.jit(init), jax.jit(epoch, donate_argnums=0), jax.jit(evaluate), lambda ts: ts
+        return jax.jit(init), jax.jit(epoch, donate_argnums=0), jax.jit(evaluate), _uncommitted
     from ttd3_jax.train import seed_keys
 
     like = jax.eval_shape(init, seed_keys(c), c.hp)
