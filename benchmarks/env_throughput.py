@@ -19,6 +19,9 @@ Cases:
                jnp.sum, a reduction per state leaf), for the before/after ratio
   env_paper_jaxrng  env_paper with the wind drawn by jax.random instead of ttd3_jax.rng
                (the same numbers; Threefry as jax's rolled loop), for the before/after ratio
+  env_practical  env.step under the ``practical`` preset (10 RK4 steps per env step, 50-step
+               look-ahead, track frame), no wind, run for steps/10 env steps: as many RK4 steps
+               as the other cases, so its env-steps/s and x rk4 count physics steps
   env_mask_before  env_nominal with the observation's non-finite mask as it was until the
                mask fix of 2026-12-01 (``jnp.where(jnp.isfinite(obs), obs, 0)``: it reads the
                concatenated observation twice, so XLA:CPU writes it out first), for the
@@ -195,6 +198,9 @@ def main(argv=None):
             dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps, _MaskBefore
         ),
     }
+    practical = dataclasses.replace(make_config("practical"), wind_sigma=0.0)
+    if args.steps % practical.action_repeat == 0:
+        cases["env_practical"] = env_case(practical, args.envs, args.steps // practical.action_repeat)
     if args.ablate or args.quick:
         nominal = dataclasses.replace(base, wind_sigma=0.0)
         for name, cls in (("abl_no_lookup", _NoLookup), ("abl_no_obs", _NoObs), ("abl_neither", _Neither)):
