@@ -266,9 +266,9 @@ def test_resume_equals_uninterrupted(tmp_path, horizon):
 
 def test_restored_state_lowers_to_the_fresh_runs_epoch_program(tmp_path):
     """A resumed run finds its epoch program in the compilation cache: the restored state
-    (``place`` of a checkpoint) lowers to the same program text as a fresh one.  Orbax
-    restores committed arrays, which lower with a sharding annotation of their own (with
-    jax 0.10.2 and ``place`` the identity, the texts differ and this test fails)."""
+    (``place`` of a checkpoint) lowers to the same program text as a fresh one.  A state
+    committed to a device lowers with a sharding annotation of its own (as Orbax's restored
+    jax arrays did until 2026-12-02: with jax 0.10.2 the texts then differed)."""
     from ttd3_jax.runner import per_seed
     from ttd3_jax.sharding import runner_fns
 

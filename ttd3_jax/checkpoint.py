@@ -12,6 +12,7 @@ import os
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import orbax.checkpoint as ocp
 from flax import serialization
 
@@ -45,13 +46,11 @@ def latest_epoch(mngr: ocp.CheckpointManager) -> int | None:
 
 
 def restore(mngr: ocp.CheckpointManager, epoch: int, like):
-    """Restore checkpoint ``epoch`` into the structure, shapes and dtypes of ``like``."""
-    abstract = jax.tree.map(
-        lambda x: jax.ShapeDtypeStruct((1,), x.dtype) if _empty(x) else ocp.utils.to_shape_dtype_struct(x),
-        like,
-    )
+    """Restore checkpoint ``epoch`` into the structure, shapes and dtypes of ``like``, as
+    host (numpy) arrays: the caller places them (``jax.device_put``, or onto a mesh)."""
+    abstract = jax.tree.map(lambda x: np.zeros((1,) if _empty(x) else x.shape, x.dtype), like)
     out = mngr.restore(epoch, args=ocp.args.StandardRestore(abstract))
-    return jax.tree.map(lambda o, x: jnp.zeros(x.shape, x.dtype) if _empty(x) else o, out, like)
+    return jax.tree.map(lambda o, x: np.zeros(x.shape, x.dtype) if _empty(x) else o, out, like)
 
 
 # --------------------------------------------------------------------------- selected policy

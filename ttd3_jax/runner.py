@@ -168,7 +168,7 @@ def load_train_state(run_dir: str, epoch: int | None = None):
             f"no checkpoint {'' if epoch is None else epoch} in {run_dir!r}; saved: {saved}"
         )
     like = jax.eval_shape(per_seed(trainer.init, c, (0, None)), seed_keys(c), c.hp)
-    return c, trainer, ckpt.restore(mngr, epoch, like)
+    return c, trainer, jax.device_put(ckpt.restore(mngr, epoch, like))
 
 
 # --------------------------------------------------------------------------- memory

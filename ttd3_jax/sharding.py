@@ -148,19 +148,13 @@ def state_shardings(state, mesh: Mesh, num_envs: int):
     return state.replace(**out)
 
 
-def _uncommitted(tree):
-    """``tree``'s arrays as uncommitted arrays on the default device, as ``jit`` returns them
-    from uncommitted inputs.  Orbax restores committed arrays, and ``jit`` lowers those with
-    a sharding annotation: the program differs from the fresh run's, so a resumed run would
-    compile its epoch again instead of finding it in the compilation cache."""
-    return jax.device_put(jax.device_get(tree))
-
-
 def runner_fns(trainer, c, per_seed: Callable, mesh: Mesh | None = None):
     """``(init_fn, epoch_fn, eval_fn, place)`` for :func:`ttd3_jax.runner.run`.
 
     On one device these are the plain ``jit(per_seed(...))`` functions, and ``place(state)``
-    gives a restored state the placement of a fresh one (:func:`_uncommitted`).  With several
+    puts a restored (host) state on the default device uncommitted, as ``jit`` returns a fresh
+    one: a committed state would lower with a sharding annotation, so a resumed run would
+    compile its epoch again instead of finding it in the compilation cache.  With several
     devices, the seed axis is split over ``sweep`` and the env axis over ``env``
     (:func:`seed_env_mesh`); ``place(state)`` puts a restored state on the mesh.  Single
     process only: the runner reads metrics and checkpoints on its host."""
@@ -173,7 +167,7 @@ def runner_fns(trainer, c, per_seed: Callable, mesh: Mesh | None = None):
     epoch = per_seed(trainer.epoch, c, (0, None))
     evaluate = per_seed(trainer.evaluate, c, (0,))
     if math.prod(mesh.devices.shape) == 1:
-        return jax.jit(init), jax.jit(epoch, donate_argnums=0), jax.jit(evaluate), _uncommitted
+        return jax.jit(init), jax.jit(epoch, donate_argnums=0), jax.jit(evaluate), jax.device_put
     from ttd3_jax.train import seed_keys
 
     like = jax.eval_shape(init, seed_keys(c), c.hp)
