@@ -7,6 +7,7 @@ vehicles.  Compile time is reported apart from run time; run time is the best of
     python benchmarks/env_throughput.py             # 1024 envs x 1000 steps
     python benchmarks/env_throughput.py --quick     # smoke run (CI)
     python benchmarks/env_throughput.py --ablate    # + what limits env_nominal's ratio
+    python benchmarks/env_throughput.py --env-last  # + both sides with the env axis last
 
 Cases:
   rk4          bare model: vmapped rk4_step with fixed controls (the floor)
@@ -34,6 +35,17 @@ goes beyond the RK4 step):
   abl_no_obs       env_nominal with the 17-D observation replaced by a one-entry stand-in
                (the lookup at k+1 and the reward stay)
   abl_neither      both: RK4, the tracking error, reward, crash test and metrics remain
+
+Env axis last (``--env-last``; the layout a batch-aware env would use instead of Brax's
+per-env arrays, to show whether it would close the ratio):
+  rk4_last     ``rk4`` vmapped with ``in_axes=-1, out_axes=-1``: every state array is (F, N)
+  env_last     ``env_nominal`` the same way (observation (17, N), track tables (.., N))
+  ref_lookup_last  ``ref_lookup`` the same way (the segment tables env axis last)
+  wind         the paper preset's wind draw alone (key split, 3 normals, OU update per env)
+  wind_last    the same with the env axis last: keys (2, N), wind (3, N)
+  wind_last_T  ``wind_last`` inside the Brax layout: keys and wind are carried (N, F) and
+               transposed into and out of the env-last draw at every step
+The states are moved to the env-last layout once, before the timed program.
 """
 
 from __future__ import annotations
@@ -42,6 +54,7 @@ import argparse
 import dataclasses
 import datetime
 import json
+import math
 import os
 import platform
 import time
@@ -51,6 +64,7 @@ import jax
 import jax.numpy as jnp
 
 import ttd3_jax.env as env_module
+from ttd3_jax import rng
 from ttd3_jax import trajectories as tr
 from ttd3_jax.dynamics import rk4_step
 from ttd3_jax.env import TrackingEnv, action_to_control, make_config
@@ -115,13 +129,25 @@ class _Neither(_NoObs):
     position = staticmethod(_stand_in_position)
 
 
-def rk4_case(cfg, n_envs, n_steps):
+def _env_last(tree):
+    """Every leaf with its leading (env) axis moved last: (N, ...) -> (..., N)."""
+    return jax.tree.map(lambda x: jnp.moveaxis(x, 0, -1), tree)
+
+
+def _vmap(fn, env_last):
+    """``vmap`` over the leading axis, or over the last one with ``env_last``."""
+    return jax.vmap(fn, in_axes=-1, out_axes=-1) if env_last else jax.vmap(fn)
+
+
+def rk4_case(cfg, n_envs, n_steps, env_last=False):
     quad0 = _reset(dataclasses.replace(cfg, wind_sigma=0.0), n_envs)[1].pipeline_state.quad
     a = jax.random.uniform(jax.random.PRNGKey(1), (n_envs, 4), minval=-0.05, maxval=0.05)
     u = action_to_control(cfg, a.at[:, 0].add(0.4715))
+    if env_last:
+        quad0, u = _env_last(quad0), u.T
 
     def run(quad):
-        step = jax.vmap(lambda x, u: rk4_step(cfg.quad, x, u, cfg.dt))
+        step = _vmap(lambda x, u: rk4_step(cfg.quad, x, u, cfg.dt), env_last)
         x, _ = jax.lax.scan(lambda x, _: (step(x, u), None), quad, None, length=n_steps)
         return x.p.sum()
 
@@ -134,29 +160,63 @@ def _reset(cfg, n_envs, env_cls=TrackingEnv):
     return env, jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), n_envs))
 
 
-def lookup_case(cfg, n_envs, n_steps):
+def lookup_case(cfg, n_envs, n_steps, env_last=False):
     _, s0 = _reset(cfg, n_envs)
     track = s0.pipeline_state.track
-    lookup = jax.vmap(lambda tk, k: tr.position(tk, k, cfg.dt))
+    if env_last:
+        track = _env_last(track)
+    lookup = _vmap(lambda tk, k: tr.position(tk, k, cfg.dt), env_last)
 
     def run(k0):
         def body(carry, _):
             k, acc = carry
             return (k + 1, acc + lookup(track, k + 1)), None
 
-        (_, acc), _ = jax.lax.scan(body, (k0, jnp.zeros((n_envs, 3))), None, length=n_steps)
+        acc0 = jnp.zeros((3, n_envs) if env_last else (n_envs, 3))
+        (_, acc), _ = jax.lax.scan(body, (k0, acc0), None, length=n_steps)
         return acc.sum()
 
     return run, s0.pipeline_state.k
 
 
-def env_case(cfg, n_envs, n_steps, env_cls=TrackingEnv):
+def wind_case(cfg, n_envs, n_steps, layout="env_first"):
+    """The env's OU wind update alone (``env._substep``'s draw): ``layout`` is
+    ``env_first`` (Brax), ``env_last``, or ``env_last_T`` (carried env-first, drawn env-last)."""
+    phi = math.exp(-cfg.dt / cfg.wind_tau)
+    scale = cfg.wind_sigma * math.sqrt(1.0 - phi * phi)
+
+    def draw(key, wind):
+        key, sub = rng.split(key)
+        return key, phi * wind + scale * rng.normal(sub, (3,), wind.dtype)
+
+    keys = _reset(cfg, n_envs)[1].pipeline_state.key
+    wind0 = jnp.zeros((n_envs, 3), jnp.float32)
+    if layout == "env_last":
+        keys, wind0 = keys.T, wind0.T
+    step = _vmap(draw, layout != "env_first")
+
+    def body(carry, _):
+        if layout == "env_last_T":
+            k, w = step(carry[0].T, carry[1].T)
+            return (k.T, w.T), None
+        return step(*carry), None
+
+    def run(x0):
+        (k, w), _ = jax.lax.scan(body, x0, None, length=n_steps)
+        return w.sum() + k[..., 0].sum().astype(w.dtype)
+
+    return run, (keys, wind0)
+
+
+def env_case(cfg, n_envs, n_steps, env_cls=TrackingEnv, env_last=False):
     env, s0 = _reset(cfg, n_envs, env_cls)
     a = jax.random.uniform(jax.random.PRNGKey(1), (n_envs, 4), minval=-0.05, maxval=0.05)
     a = a.at[:, 0].add(0.4715)
+    if env_last:
+        s0, a = _env_last(s0), a.T
 
     def run(s):
-        step = jax.vmap(env.step)
+        step = _vmap(env.step, env_last)
 
         def body(carry, _):
             s, acc = carry
@@ -177,6 +237,7 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--quick", action="store_true", help="tiny sizes, to keep the script alive in CI")
     ap.add_argument("--ablate", action="store_true", help="add the abl_* cases (see above)")
+    ap.add_argument("--env-last", action="store_true", help="add rk4_last and env_last (see above)")
     ap.add_argument("--out", default="benchmarks/results/env_throughput.jsonl")
     args = ap.parse_args(argv)
     if args.quick:
@@ -205,6 +266,15 @@ def main(argv=None):
         nominal = dataclasses.replace(base, wind_sigma=0.0)
         for name, cls in (("abl_no_lookup", _NoLookup), ("abl_no_obs", _NoObs), ("abl_neither", _Neither)):
             cases[name] = env_case(nominal, args.envs, args.steps, cls)
+    if args.env_last or args.quick:
+        cases["rk4_last"] = rk4_case(base, args.envs, args.steps, env_last=True)
+        cases["env_last"] = env_case(
+            dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps, env_last=True
+        )
+        no_wind = dataclasses.replace(base, wind_sigma=0.0)
+        cases["ref_lookup_last"] = lookup_case(no_wind, args.envs, args.steps, env_last=True)
+        for layout, name in (("env_first", "wind"), ("env_last", "wind_last"), ("env_last_T", "wind_last_T")):
+            cases[name] = wind_case(base, args.envs, args.steps, layout)
     compiled, compile_s = {}, {}
     for name, (fn, x0) in cases.items():
         t0 = time.perf_counter()
@@ -232,6 +302,16 @@ def main(argv=None):
         rows.append(
             dict(case=name, compile_s=compile_s[name], run_s=best[name], steps_per_s=sps, ratio_vs_rk4=ratio)
         )
+    extra = {}
+    if "env_last" in best:
+        extra["env_last_vs_rk4_last"] = best["env_last"] / best["rk4_last"]
+        extra["env_nominal_vs_env_last"] = best["env_nominal"] / best["env_last"]
+        extra["rk4_vs_rk4_last"] = best["rk4"] / best["rk4_last"]
+        extra["ref_lookup_vs_ref_lookup_last"] = best["ref_lookup"] / best["ref_lookup_last"]
+        extra["wind_vs_wind_last"] = best["wind"] / best["wind_last"]
+        extra["wind_vs_wind_last_T"] = best["wind"] / best["wind_last_T"]
+    for k, v in extra.items():
+        print(f"{k}: {v:.2f}")
     goals = {}
     if args.envs == 1024 and not args.quick:  # issue 2's targets are stated at 1024 envs
         ratio = best["env_nominal"] / best["rk4"]
@@ -250,6 +330,7 @@ def main(argv=None):
         steps=args.steps,
         quick=args.quick,
         rows=rows,
+        ratios=extra,
         goals=goals,
     )
     if args.out:

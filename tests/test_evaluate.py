@@ -14,7 +14,7 @@ import pytest
 
 from ttd3_jax import checkpoint as ckpt
 from ttd3_jax.env import EnvConfig, TrackingEnv, hover_action, make_config
-from ttd3_jax.evaluate import closed_loop, controller_build, hover_controller, main
+from ttd3_jax.evaluate import TRACE_COLUMNS, closed_loop, controller_build, hover_controller, main
 from ttd3_jax.evaluate import test_tracks as make_test_tracks
 from ttd3_jax.networks import init_params
 from ttd3_jax.robustness import ROBUSTNESS_CONDITIONS, evaluate_robustness, robustness_conditions
@@ -65,7 +65,16 @@ def check_evaluation_json(run_dir: str, epoch: int) -> dict:
     for track in ("spiral_rt", "los_rt"):
         for kind in ("3d", "error", "actions"):
             assert os.path.isfile(os.path.join(run_dir, f"{track}_{kind}.png"))
+        rows = read_trace(os.path.join(run_dir, f"{track}_trace.csv"))
+        assert set(rows["label"]) == {"seed 0"} and rows.size == 300  # one row per control step
+        np.testing.assert_allclose(rows["t_s"][[0, -1]], [0.01, 3.0], rtol=1e-6)
     return out
+
+
+def read_trace(path: str) -> np.ndarray:
+    rows = np.genfromtxt(path, delimiter=",", names=True, dtype=None, encoding="utf-8")
+    assert ",".join(rows.dtype.names) == TRACE_COLUMNS
+    return rows
 
 
 def test_cli_evaluates_a_saved_checkpoint(tmp_path, capsys):
@@ -79,6 +88,26 @@ def test_cli_evaluates_a_saved_checkpoint(tmp_path, capsys):
         main([run_dir, "--controller", "nmpc"])
     assert main([run_dir, "--seed-index", "3"]) == 2
     assert main([str(tmp_path / "missing")]) == 2
+
+
+def test_cli_trace_csv_holds_the_rollout_behind_the_metrics(tmp_path):
+    """The trace CSV of a classical controller's evaluation: at the paper's 1 kHz, one row
+    per physics step, whose errors are the positions' distances and sum to Σ‖e‖."""
+    out = tmp_path / "geometric.json"
+    args = ["--controller", "geometric", "--track", "spiral_rt", "--no-timing", "--json", str(out)]
+    assert main(args) == 0
+    with open(out) as fh:
+        res = json.load(fh)["results"]["geometric"]["spiral_rt"]
+    rows = read_trace(str(tmp_path / "spiral_rt_trace.csv"))
+    assert not (tmp_path / "los_rt_trace.csv").exists()
+    assert set(rows["label"]) == {"geometric"} and rows.size == 3000
+    np.testing.assert_allclose(rows["t_s"], 1e-3 * np.arange(1, 3001), rtol=1e-6)
+    pos = np.stack([rows[c] for c in ("x_m", "y_m", "z_m")], -1)
+    ref = np.stack([rows[c] for c in ("x_ref_m", "y_ref_m", "z_ref_m")], -1)
+    np.testing.assert_allclose(rows["error_m"], np.linalg.norm(pos - ref, axis=-1), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(rows["error_m"].sum(), res["tracking_error"], rtol=1e-5)
+    actions = np.stack([rows[c] for c in ("a0_thrust", "a1_wx", "a2_wy", "a3_wz")], -1)
+    assert np.all(np.abs(actions) <= 1.0) and np.ptp(actions[:, 0]) > 0
 
 
 @pytest.mark.slow

@@ -305,6 +305,33 @@ class Trace:
         )
 
 
+TRACE_COLUMNS = "label,t_s,x_m,y_m,z_m,x_ref_m,y_ref_m,z_ref_m,error_m,a0_thrust,a1_wx,a2_wy,a3_wz"
+
+
+def write_traces(traces: dict[str, dict[str, Trace]], out_dir: str, prefix: str = "") -> list[str]:
+    """Per track, ``{prefix}{track}_trace.csv``: one row per control step and label
+    (controller or seed), with the time (s), the flown and reference positions (m), the
+    error ‖p_d − p‖ (m) and the applied normalised action (columns ``TRACE_COLUMNS``).
+    These are the data behind :func:`ttd3_jax.plots.plot_traces`."""
+    os.makedirs(out_dir, exist_ok=True)
+    tracks = [t for t in tr.TEST_TRACKS if any(t in v for v in traces.values())]
+    paths = []
+    for track in tracks:
+        path = os.path.join(out_dir, f"{prefix}{track}_trace.csv")
+        with open(path, "w") as fh:
+            fh.write(TRACE_COLUMNS + "\n")
+            for label, v in traces.items():
+                if track not in v:
+                    continue
+                x = v[track]
+                cols = np.column_stack([x.t, x.pos, x.ref, x.error, x.action])
+                name = str(label).replace(",", ";")
+                for row in cols:
+                    fh.write(name + "," + ",".join(f"{c:.9g}" for c in row) + "\n")
+        paths.append(path)
+    return paths
+
+
 def _index(tree, i):
     return jax.tree.map(lambda x: x[i], tree)
 
@@ -616,7 +643,9 @@ def main(argv=None) -> int:
     ap.add_argument("--track", default="all", choices=("all", *tr.TEST_TRACKS))
     ap.add_argument("--los-seed", type=int, default=0, help="LOS-RT test instance (0 = headline)")
     ap.add_argument("--json", default=None, help="write results here (default RUN_DIR/evaluation.json)")
-    ap.add_argument("--plots", default=None, help="write plots here (default: the JSON file's directory)")
+    ap.add_argument(
+        "--plots", default=None, help="write plots and trace CSVs here (default: the JSON file's directory)"
+    )
     ap.add_argument(
         "--timing",
         action=argparse.BooleanOptionalAction,
@@ -757,7 +786,9 @@ def main(argv=None) -> int:
 
         title = header.get("algo", args.controller)
         paths = plot_traces(traces, plots, title, args.los_seed)
-        print(f"wrote {len(paths)} plots to {plots}")
+        csvs = write_traces(traces, plots)
+        names = ", ".join(os.path.basename(p) for p in csvs)
+        print(f"wrote {len(paths)} plots and {len(csvs)} trace CSVs ({names}) to {plots}")
     return 0
 
 
