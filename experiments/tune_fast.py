@@ -1,10 +1,10 @@
 """Single-seed variants of the ``fast_dpg`` preset (the paper's actor update; it was the ``fast``
 preset until 2026-12-01), as explored while tuning it (docs/results.md).
 
-Each variant is the ``fast_dpg`` preset plus a few overrides of the env config, the
-``TrainConfig`` or ``Hyper``.  Env overrides are applied by swapping
-``ttd3_jax.train.quad_env_config`` for this process only (the CLI does not expose
-every env field).  The script trains each variant, then prints the median Spiral-RT
+Each variant is the ``fast_dpg`` preset plus a few overrides of the env config (as
+``TrainConfig.env_overrides``, so the run directory records them and
+``python -m ttd3_jax.evaluate RUN_DIR`` and ``--resume`` rebuild the same env), the
+``TrainConfig`` or ``Hyper``.  The script trains each variant, then prints the median Spiral-RT
 and LOS-RT tracking error over the last five evaluations (evaluations are noisy from
 epoch to epoch), the best single evaluation (an optimistic figure: chosen on the test
 tracks) and the policy selected on the validation tracks (the honest one).
@@ -20,7 +20,6 @@ import dataclasses
 import statistics
 
 from ttd3_jax import train as T
-from ttd3_jax.env import make_config
 from ttd3_jax.runner import read_metrics, run
 from ttd3_jax.trajectories import TrackConfig
 
@@ -104,23 +103,16 @@ VARIANTS = {
 }
 
 
-def config_for(name: str) -> tuple[T.TrainConfig, dict]:
+def config_for(name: str) -> T.TrainConfig:
     env_o, cfg_o, hp_o = VARIANTS[name]
-    c = T.preset("fast_dpg", **cfg_o)
+    overrides = tuple(T.env_override(k, v) for k, v in env_o.items())
+    c = T.preset("fast_dpg", env_overrides=overrides, **cfg_o)
     c = dataclasses.replace(c, hp=dataclasses.replace(c.hp, **hp_o))
-    return T.with_algo(c, c.algo), env_o
+    return T.with_algo(c, c.algo)
 
 
 def run_variant(name: str, out: str) -> dict:
-    c, env_o = config_for(name)
-    original = T.quad_env_config
-    T.quad_env_config = lambda cfg: make_config(
-        cfg.env_preset, hover_centered_thrust=cfg.hover_centered_thrust, **env_o
-    )
-    try:
-        summary = run(c, out=f"{out}/{name}")
-    finally:
-        T.quad_env_config = original
+    summary = run(config_for(name), out=f"{out}/{name}")
     rows = read_metrics(summary["run_dir"])
     sp = [float(r["spiral_tracking_error"]) for r in rows]
     los = [float(r["los_tracking_error"]) for r in rows]

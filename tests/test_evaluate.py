@@ -18,7 +18,7 @@ from ttd3_jax.evaluate import TRACE_COLUMNS, closed_loop, controller_build, hove
 from ttd3_jax.evaluate import test_tracks as make_test_tracks
 from ttd3_jax.networks import init_params
 from ttd3_jax.robustness import ROBUSTNESS_CONDITIONS, evaluate_robustness, robustness_conditions
-from ttd3_jax.runner import config_to_dict, per_seed, run
+from ttd3_jax.runner import config_to_dict, env_config_dict, per_seed, run
 from ttd3_jax.train import make_trainer, preset, seed_keys
 
 TINY = dict(
@@ -34,10 +34,11 @@ TINY = dict(
 
 
 def fake_run_dir(path) -> str:
-    """A run directory as the runner writes it (config.json, an orbax checkpoint of the
-    whole train state at epoch 2), without the ~40 s of compiling a real run: the state is
-    zeros except for freshly initialised actor weights."""
-    c = preset("fast_dpg", **TINY)
+    """A run directory as the runner writes it (config.json with an env override,
+    env_config.json, an orbax checkpoint of the whole train state at epoch 2), without the
+    ~40 s of compiling a real run: the state is zeros except for freshly initialised actor
+    weights."""
+    c = preset("fast_dpg", env_overrides=("obs_frame=heading",), **TINY)
     trainer = make_trainer(c)
     like = jax.eval_shape(per_seed(trainer.init, c, (0, None)), seed_keys(c), c.hp)
     state = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), like)
@@ -46,15 +47,18 @@ def fake_run_dir(path) -> str:
     os.makedirs(path)
     with open(os.path.join(path, "config.json"), "w") as fh:
         json.dump(config_to_dict(c), fh)
+    with open(os.path.join(path, "env_config.json"), "w") as fh:
+        json.dump(env_config_dict(c), fh)
     ckpt.save(ckpt.manager(str(path)), 2, state)
     return str(path)
 
 
-def check_evaluation_json(run_dir: str, epoch: int) -> dict:
+def check_evaluation_json(run_dir: str, epoch: int, obs_frame: str = "track") -> dict:
     with open(os.path.join(run_dir, "evaluation.json")) as fh:
         out = json.load(fh)
     assert out["epoch"] == epoch and out["env_preset"] == "practical"
     assert out["env_config"]["action_repeat"] == 10  # the run's env config, not the paper preset
+    assert out["env_config"]["obs_frame"] == obs_frame  # with the run's env overrides
     res = out["results"]["seed 0"]
     assert set(res) == {"spiral_rt", "los_rt"}
     for m in res.values():
@@ -82,7 +86,7 @@ def test_cli_evaluates_a_saved_checkpoint(tmp_path, capsys):
     assert main([run_dir, "--repeats", "1"]) == 0
     text = capsys.readouterr().out
     assert "epoch 2" in text and "seed 0" in text and "loop s" in text
-    check_evaluation_json(run_dir, 2)
+    check_evaluation_json(run_dir, 2, obs_frame="heading")
     # flags that do not apply to a run directory are refused
     with pytest.raises(SystemExit):
         main([run_dir, "--controller", "nmpc"])

@@ -14,8 +14,28 @@ import pytest
 from ttd3_jax import buffer as rb
 from ttd3_jax import checkpoint as ckpt
 from ttd3_jax import noise as nz
-from ttd3_jax.runner import CsvLog, TrainingDiverged, _check_finite, read_metrics, run
-from ttd3_jax.train import Hyper, TrainConfig, main, make_trainer, preset, seed_keys, with_algo
+from ttd3_jax.env import make_config
+from ttd3_jax.runner import (
+    CsvLog,
+    TrainingDiverged,
+    _check_finite,
+    config_from_dict,
+    config_to_dict,
+    read_metrics,
+    run,
+)
+from ttd3_jax.train import (
+    Hyper,
+    TrainConfig,
+    env_override,
+    main,
+    make_trainer,
+    preset,
+    quad_env_config,
+    seed_keys,
+    with_algo,
+)
+from ttd3_jax.trajectories import TrackConfig
 
 
 def tiny(**kw) -> TrainConfig:
@@ -59,6 +79,16 @@ def tiny(**kw) -> TrainConfig:
         (dict(model_horizon=4, hp=Hyper(model_grad_clip=0.0)), "hp.model_grad_clip"),
         (dict(model_horizon=4, hp=Hyper(model_bootstrap=-1.0)), "hp.model_bootstrap"),
         (dict(model_horizon=50), "total_transitions"),
+        (dict(env_overrides=("obs_frame=sideways",)), "obs_frame must be one of"),
+        (dict(env_overrides=("e_max=-1",)), "e_max"),
+        (dict(env_overrides=("mass=2",)), "unknown env config field 'mass'"),
+        (dict(env_overrides=('quad={"mass": 0}',)), "QuadParams.mass must be > 0"),
+        (dict(env_overrides=('tracks={"speed": 1}',)), r"unknown TrackConfig field\(s\) \['speed'\]"),
+        (dict(env_overrides=("e_max",)), "'name=value'"),
+        (dict(env_overrides=("e_max=1", "e_max=2")), "overridden twice"),
+        (dict(env_overrides=("track=los_rt",)), "training draws the training mixture"),
+        (dict(env_overrides=("hover_centered_thrust=false",)), "use hover_centered_thrust"),
+        (dict(env_overrides=("e_max=1",), env="hopper", model_horizon=0), "env 'hopper' has none"),
     ],
 )
 def test_config_errors_are_raised_at_construction(kw, match):
@@ -83,6 +113,22 @@ def test_unknown_preset_and_cli_errors(capsys):
     assert "num_envs must be an integer >= 1" in capsys.readouterr().err
     assert main(["--resume", "/nonexistent/run"]) == 2
     assert "not a ttd3_jax run directory" in capsys.readouterr().err
+
+
+def test_env_overrides_build_the_env_and_survive_the_config_file():
+    c = tiny(env_overrides=("obs_frame=heading", "e_max=1", 'tracks={"train_scale": [0.05, 1]}'))
+    e = quad_env_config(c)
+    assert e.obs_frame == "heading" and e.e_max == 1.0 and isinstance(e.e_max, float)
+    assert e.tracks.train_scale == (0.05, 1.0) and e.tracks.los_speed == TrackConfig().los_speed
+    # practical preset: the crash penalty follows the overridden e_max, as make_config's would
+    assert e == make_config("practical", hover_centered_thrust=True, obs_frame="heading", e_max=1.0,
+                            tracks=TrackConfig(train_scale=(0.05, 1.0)))  # fmt: skip
+    assert config_from_dict(json.loads(json.dumps(config_to_dict(c)))) == c
+    old = config_to_dict(tiny())
+    del old["env_overrides"]  # a run directory from before the field
+    assert config_from_dict(old) == tiny()
+    assert env_override("tracks", TrackConfig(train_scale=(1e-4, 1e-4))).startswith('tracks={"spiral')
+    assert quad_env_config(tiny(env_overrides=(env_override("rho2", 0.1),))).rho2 == 0.1
 
 
 def test_algo_switches_only_the_noise_schedule():

@@ -213,6 +213,40 @@ def error_cost(cfg: EnvConfig, e: jax.Array) -> jax.Array:
     return jnp.where(e * e <= 1.0, e, e * e)
 
 
+def _like(default, x):
+    """``x`` with JSON lists as tuples and integers as floats where ``default`` (the field's
+    default value) has floats, recursively, so that ``e_max=1`` sets the float 1.0."""
+    if isinstance(x, (list, tuple)):
+        ref = default if isinstance(default, tuple) and len(default) == len(x) else (None,) * len(x)
+        return tuple(_like(d, v) for d, v in zip(ref, x, strict=True))
+    if isinstance(default, float) and isinstance(x, int) and not isinstance(x, bool):
+        return float(x)
+    return x
+
+
+def config_value(name: str, value):
+    """``value`` (as read from JSON or a command line) as the type of ``EnvConfig.name``:
+    lists become tuples, and an object sets some fields of a nested config (``quad``:
+    :class:`~ttd3_jax.dynamics.QuadParams`, ``tracks``: :class:`~ttd3_jax.trajectories.TrackConfig`)
+    on top of their defaults.  Raises ``ValueError`` naming a field that does not exist."""
+    fields = {f.name: f for f in dataclasses.fields(EnvConfig)}
+    if name not in fields:
+        raise ValueError(f"unknown env config field {name!r}; allowed: {sorted(fields)}")
+    default = fields[name].default
+    if not dataclasses.is_dataclass(default) or isinstance(value, type(default)):
+        return _like(default, value)
+    kind = type(default).__name__
+    if not isinstance(value, dict):
+        raise ValueError(f"{name} takes an object of {kind} fields, got {value!r}")
+    allowed = {f.name for f in dataclasses.fields(default)}
+    unknown = sorted(set(value) - allowed)
+    if unknown:
+        raise ValueError(f"{name}: unknown {kind} field(s) {unknown}; allowed: {sorted(allowed)}")
+    merged = {k: getattr(default, k) for k in allowed}
+    merged.update({k: _like(merged[k], v) for k, v in value.items()})
+    return type(default).create(**merged) if hasattr(type(default), "create") else type(default)(**merged)
+
+
 def make_config(preset: str = "paper", **overrides) -> EnvConfig:
     """A named, documented configuration.
 

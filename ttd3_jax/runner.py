@@ -53,6 +53,7 @@ def config_from_dict(d: dict) -> TrainConfig:
     d["noise"] = nz.NoiseConfig(**d["noise"])
     d["hp"] = Hyper(**d["hp"])
     d["hidden"] = tuple(d["hidden"])
+    d["env_overrides"] = tuple(d.get("env_overrides", ()))  # runs from before the field: none
     return TrainConfig(**d)
 
 

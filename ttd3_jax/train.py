@@ -23,6 +23,7 @@ CLI: ``python -m ttd3_jax.train --help``.
 from __future__ import annotations
 
 import dataclasses
+import json
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -35,7 +36,7 @@ from ttd3_jax import buffer as rb
 from ttd3_jax import noise as nz
 from ttd3_jax import normalize as nrm
 from ttd3_jax.env import PRESETS as ENV_PRESETS
-from ttd3_jax.env import TrackingEnv, make_config
+from ttd3_jax.env import TrackingEnv, config_value, make_config
 from ttd3_jax.evaluate import Controller, evaluate_on_tracks, test_tracks
 from ttd3_jax.losses import actor_loss, critic_loss
 from ttd3_jax.networks import CRITICS, Networks, init_params, make_networks, twin_q
@@ -85,6 +86,9 @@ class TrainConfig:
     env: str = QUADROTOR  # "quadrotor" or a Brax env name
     env_preset: str = "paper"  # quadrotor env preset ("paper" | "practical")
     hover_centered_thrust: bool = False  # quadrotor: action a0 = 0 means hover thrust (spec O2)
+    # quadrotor: EnvConfig fields set on top of env_preset, each "name=value" with value in
+    # JSON (else a plain string), e.g. obs_frame=heading e_max=1.5 'tracks={"train_scale": [0.05, 1]}'
+    env_overrides: tuple[str, ...] = ()
     backend: str = "mjx"  # Brax physics backend
     algo: str = "ttd3"  # "ttd3" (time-attenuating σ) | "td3" (constant σ)
     num_envs: int = 20  # M, parallel training envs
@@ -151,6 +155,12 @@ def validate(c: TrainConfig) -> None:
         f"env must be {QUADROTOR!r} or one of {BRAX_ENVS}, got {c.env!r}",
     )
     need(c.env_preset in ENV_PRESETS, f"env_preset must be one of {ENV_PRESETS}, got {c.env_preset!r}")
+    if c.env_overrides:
+        need(c.env == QUADROTOR, f"env_overrides set quadrotor env fields; env {c.env!r} has none")
+        try:
+            quad_env_config(c)  # parses and validates every override
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"env_overrides {list(c.env_overrides)}: {e}") from None
     need(c.backend in BACKENDS, f"backend must be one of {BACKENDS}, got {c.backend!r}")
     need(c.algo in ALGOS, f"algo must be one of {ALGOS}, got {c.algo!r}")
     need(c.critic in CRITICS, f"critic must be one of {CRITICS}, got {c.critic!r}")
@@ -267,9 +277,43 @@ def uses_caps(c: TrainConfig) -> bool:
     return c.hp.smooth_time != 0 or c.hp.smooth_space != 0
 
 
+# set by the run, not by an override: the training env draws the training mixture (evaluation
+# picks its own tracks), and the thrust centring has its own TrainConfig field
+_NOT_OVERRIDABLE = {"track": "training draws the training mixture", "los_seed": "training draws the "
+                    "training mixture", "hover_centered_thrust": "use hover_centered_thrust"}  # fmt: skip
+
+
+def env_override_items(c: TrainConfig) -> dict:
+    """``c.env_overrides`` parsed: ``{field: value}`` in the types of ``EnvConfig``."""
+    out = {}
+    for item in c.env_overrides:
+        if not isinstance(item, str) or "=" not in item:
+            raise ValueError(f"an env override is 'name=value', got {item!r}")
+        name, text = (x.strip() for x in item.split("=", 1))
+        if name in _NOT_OVERRIDABLE:
+            raise ValueError(f"{name!r} cannot be overridden ({_NOT_OVERRIDABLE[name]})")
+        if name in out:
+            raise ValueError(f"{name!r} is overridden twice")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text  # a bare word: a string field such as obs_frame=heading
+        out[name] = config_value(name, value)
+    return out
+
+
+def env_override(name: str, value) -> str:
+    """The ``env_overrides`` entry that sets ``EnvConfig.name`` to ``value`` (nested configs
+    as objects of their fields)."""
+    if dataclasses.is_dataclass(value):
+        value = dataclasses.asdict(value)
+    return f"{name}={json.dumps(value)}"
+
+
 def quad_env_config(c: TrainConfig):
-    """The quadrotor training env's config for this run."""
-    return make_config(c.env_preset, hover_centered_thrust=c.hover_centered_thrust)
+    """The quadrotor training env's config for this run: ``env_preset``, the thrust centring
+    and ``env_overrides``."""
+    return make_config(c.env_preset, hover_centered_thrust=c.hover_centered_thrust, **env_override_items(c))
 
 
 def _adam(lr):
