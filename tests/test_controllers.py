@@ -90,6 +90,8 @@ def test_metrics_match_hand_computed_rollout():
         action=jnp.asarray(action),
         error_sum=jnp.asarray(error_sum),
         crashed=jnp.asarray([0.0, 1.0, 1.0]),
+        vel=jnp.zeros((3, 3)),
+        quat=jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (3, 1)),
     )
     m = {k: float(v) for k, v in metrics(env, rollout).items()}
     assert m["tracking_error"] == pytest.approx(9.0 + 2.5 + 6.25)

@@ -13,13 +13,14 @@ import numpy as np
 import pytest
 
 from ttd3_jax import checkpoint as ckpt
-from ttd3_jax.env import EnvConfig, TrackingEnv, hover_action, make_config
+from ttd3_jax import normalize as nrm
+from ttd3_jax.env import EnvConfig, TrackingEnv, hover_action, make_config, yaw_of
 from ttd3_jax.evaluate import TRACE_COLUMNS, closed_loop, controller_build, hover_controller, main
 from ttd3_jax.evaluate import test_tracks as make_test_tracks
-from ttd3_jax.networks import init_params
+from ttd3_jax.networks import init_params, twin_q
 from ttd3_jax.robustness import ROBUSTNESS_CONDITIONS, evaluate_robustness, robustness_conditions
-from ttd3_jax.runner import config_to_dict, env_config_dict, per_seed, run
-from ttd3_jax.train import make_trainer, preset, seed_keys
+from ttd3_jax.runner import config_to_dict, env_config_dict, load_train_state, per_seed, run
+from ttd3_jax.train import make_trainer, preset, quad_env_config, seed_keys
 
 TINY = dict(
     num_envs=16,
@@ -37,13 +38,14 @@ def fake_run_dir(path) -> str:
     """A run directory as the runner writes it (config.json with an env override,
     env_config.json, an orbax checkpoint of the whole train state at epoch 2), without the
     ~40 s of compiling a real run: the state is zeros except for freshly initialised actor
-    weights."""
+    and critic weights (``init_params`` with key 3)."""
     c = preset("fast_dpg", env_overrides=("obs_frame=heading",), **TINY)
     trainer = make_trainer(c)
     like = jax.eval_shape(per_seed(trainer.init, c, (0, None)), seed_keys(c), c.hp)
     state = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), like)
-    actor, _ = init_params(trainer.nets, jax.random.PRNGKey(3), trainer.spec.obs_size, 4)
-    state = state.replace(actor=jax.tree.map(lambda x: x[None], actor))
+    actor, critic = init_params(trainer.nets, jax.random.PRNGKey(3), trainer.spec.obs_size, 4)
+    lead = lambda tree: jax.tree.map(lambda x: x[None], tree)  # noqa: E731  (the seed axis)
+    state = state.replace(actor=lead(actor), critic=lead(critic))
     os.makedirs(path)
     with open(os.path.join(path, "config.json"), "w") as fh:
         json.dump(config_to_dict(c), fh)
@@ -112,6 +114,39 @@ def test_cli_trace_csv_holds_the_rollout_behind_the_metrics(tmp_path):
     np.testing.assert_allclose(rows["error_m"].sum(), res["tracking_error"], rtol=1e-5)
     actions = np.stack([rows[c] for c in ("a0_thrust", "a1_wx", "a2_wy", "a3_wz")], -1)
     assert np.all(np.abs(actions) <= 1.0) and np.ptp(actions[:, 0]) > 0
+    # the velocity is the positions' derivative (central differences, 1 ms apart)
+    vel = np.stack([rows[c] for c in ("vx_mps", "vy_mps", "vz_mps")], -1)
+    np.testing.assert_allclose((pos[2:] - pos[:-2]) / 2e-3, vel[1:-1], atol=2e-3)
+    quat = np.stack([rows[c] for c in ("qw", "qx", "qy", "qz")], -1)
+    np.testing.assert_allclose(np.linalg.norm(quat, axis=-1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(rows["yaw_rad"], yaw_of(jnp.asarray(quat.T)), atol=1e-6)
+
+
+def test_probe_critics_reads_a_run_and_matches_a_direct_critic_call(tmp_path, capsys):
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(__file__), "..", "experiments", "probe_critics.py")
+    spec = importlib.util.spec_from_file_location("probe_critics", path)
+    pc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(pc)
+    run_dir = fake_run_dir(tmp_path / "run")
+    r = pc.probe(run_dir)
+    # oracle: the same critics called directly on the start state (the fake run's obs stats
+    # are zeros, so the normaliser maps every observation to the clip bounds or 0)
+    c, trainer, state = load_train_state(run_dir)
+    _, critic = init_params(trainer.nets, jax.random.PRNGKey(3), trainer.spec.obs_size, 4)
+    env = TrackingEnv(quad_env_config(c).for_eval("spiral_rt"))
+    obs = nrm.apply(jax.tree.map(lambda x: x[0], state.obs_stats), env.reset(jax.random.PRNGKey(0)).obs)
+    hover = hover_action(env.config)
+    np.testing.assert_allclose(r["q_hover"], twin_q(trainer.nets, critic, obs, hover), rtol=1e-6)
+    np.testing.assert_allclose(r["hover"], hover, atol=1e-7)
+    assert r["hover"][0] == pytest.approx(0.0, abs=1e-6)  # hover-centred thrust: a0 = 0 is hover
+    assert all(-1.0 <= a <= 1.0 for a in r["policy"])
+    assert min(r["max_dq"]) > 0 and r["q_policy"] != r["q_hover"]
+    assert pc.main([run_dir, "--track", "los_rt"]) == 0
+    assert "max |dQ|" in capsys.readouterr().out
+    assert pc.main([run_dir, "--seed-index", "1"]) == 2
+    assert "seed_index must be in [0, 1)" in capsys.readouterr().err
 
 
 @pytest.mark.slow

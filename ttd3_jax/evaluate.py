@@ -68,6 +68,8 @@ class Rollout:
     action: jax.Array  # (T, 4) applied normalised action
     error_sum: jax.Array  # (T,) m, Σ ||e|| over the physics steps of control step i
     crashed: jax.Array  # (T,) 1.0 once the tracking error exceeded e_max or went non-finite
+    vel: jax.Array  # (T, 3) m/s, velocity after step i (world frame)
+    quat: jax.Array  # (T, 4) attitude after step i, scalar-first unit quaternion (body to world)
 
 
 def hover_controller(cfg: EnvConfig) -> Controller:
@@ -106,13 +108,16 @@ def closed_loop(env: TrackingEnv, controller: Controller, state) -> Rollout:
             applied,
             s.metrics["tracking_error"],
             s.metrics["crashed"],
+            ps.quad.v,
+            ps.quad.q,
         )
         return (s, ctrl), out
 
-    _, (pos, ref, act, err, crash) = jax.lax.scan(
+    _, (pos, ref, act, err, crash, vel, quat) = jax.lax.scan(
         body, (state, controller.init(state)), None, length=env.episode_length
     )
-    return Rollout(pos=pos, ref=ref, action=act, error_sum=err, crashed=jnp.maximum.accumulate(crash))
+    crashed = jnp.maximum.accumulate(crash)
+    return Rollout(pos=pos, ref=ref, action=act, error_sum=err, crashed=crashed, vel=vel, quat=quat)
 
 
 def metrics(env: TrackingEnv, r: Rollout) -> dict[str, jax.Array]:
@@ -295,24 +300,30 @@ class Trace:
     ref: np.ndarray  # (T, 3) m
     action: np.ndarray  # (T, 4) applied normalised action
     error: np.ndarray  # (T,) m, ||p_d - p||
+    vel: np.ndarray  # (T, 3) m/s
+    quat: np.ndarray  # (T, 4) scalar-first unit quaternion, body to world
 
     @classmethod
     def from_rollout(cls, r: Rollout, control_dt: float) -> Trace:
         pos, ref = np.asarray(r.pos), np.asarray(r.ref)
         t = control_dt * np.arange(1, pos.shape[0] + 1)
-        return cls(
-            t=t, pos=pos, ref=ref, action=np.asarray(r.action), error=np.linalg.norm(pos - ref, axis=-1)
-        )
+        error = np.linalg.norm(pos - ref, axis=-1)
+        vel, quat = np.asarray(r.vel), np.asarray(r.quat)
+        return cls(t=t, pos=pos, ref=ref, action=np.asarray(r.action), error=error, vel=vel, quat=quat)
 
 
-TRACE_COLUMNS = "label,t_s,x_m,y_m,z_m,x_ref_m,y_ref_m,z_ref_m,error_m,a0_thrust,a1_wx,a2_wy,a3_wz"
+TRACE_COLUMNS = (
+    "label,t_s,x_m,y_m,z_m,x_ref_m,y_ref_m,z_ref_m,error_m,a0_thrust,a1_wx,a2_wy,a3_wz,"
+    "vx_mps,vy_mps,vz_mps,qw,qx,qy,qz,yaw_rad"
+)
 
 
 def write_traces(traces: dict[str, dict[str, Trace]], out_dir: str, prefix: str = "") -> list[str]:
     """Per track, ``{prefix}{track}_trace.csv``: one row per control step and label
     (controller or seed), with the time (s), the flown and reference positions (m), the
-    error ‖p_d − p‖ (m) and the applied normalised action (columns ``TRACE_COLUMNS``).
-    These are the data behind :func:`ttd3_jax.plots.plot_traces`."""
+    error ‖p_d − p‖ (m), the applied normalised action, the velocity (m/s), the attitude
+    quaternion and its yaw (rad, z-y-x) (columns ``TRACE_COLUMNS``).  The plots of
+    :func:`ttd3_jax.plots.plot_traces` draw from the same data."""
     os.makedirs(out_dir, exist_ok=True)
     tracks = [t for t in tr.TEST_TRACKS if any(t in v for v in traces.values())]
     paths = []
@@ -324,7 +335,9 @@ def write_traces(traces: dict[str, dict[str, Trace]], out_dir: str, prefix: str 
                 if track not in v:
                     continue
                 x = v[track]
-                cols = np.column_stack([x.t, x.pos, x.ref, x.error, x.action])
+                yaw = np.arctan2(2 * (x.quat[:, 0] * x.quat[:, 3] + x.quat[:, 1] * x.quat[:, 2]),
+                                 1 - 2 * (x.quat[:, 2] ** 2 + x.quat[:, 3] ** 2))  # env.yaw_of  # fmt: skip
+                cols = np.column_stack([x.t, x.pos, x.ref, x.error, x.action, x.vel, x.quat, yaw])
                 name = str(label).replace(",", ";")
                 for row in cols:
                     fh.write(name + "," + ",".join(f"{c:.9g}" for c in row) + "\n")
