@@ -143,6 +143,8 @@ def test_probe_critics_reads_a_run_and_matches_a_direct_critic_call(tmp_path, ca
     assert r["hover"][0] == pytest.approx(0.0, abs=1e-6)  # hover-centred thrust: a0 = 0 is hover
     assert all(-1.0 <= a <= 1.0 for a in r["policy"])
     assert min(r["max_dq"]) > 0 and r["q_policy"] != r["q_hover"]
+    # the hover action held from rest on Spiral-RT: the error grows as the track moves away
+    assert 0 < r["final_error_hover"] < 10 and r["error_hover"] > 0 and r["error_policy"] > 0
     assert pc.main([run_dir, "--track", "los_rt"]) == 0
     assert "max |dQ|" in capsys.readouterr().out
     assert pc.main([run_dir, "--seed-index", "1"]) == 2
