@@ -92,6 +92,14 @@ def test_cli_evaluates_a_saved_checkpoint(tmp_path, capsys):
     # flags that do not apply to a run directory are refused
     with pytest.raises(SystemExit):
         main([run_dir, "--controller", "nmpc"])
+    with pytest.raises(SystemExit):
+        main([run_dir, "--env-overrides", "e_max=1"])  # a run keeps the env it trained in
+    for bad in ("wind_sigma=1", "track=los_rt", "action_repeat=0", "mass=2"):
+        with pytest.raises(SystemExit):
+            main(["--controller", "hover", "--env-overrides", bad])
+    err = capsys.readouterr().err
+    assert "set by the evaluation protocol" in err and "action_repeat must be > 0" in err
+    assert "unknown env config field 'mass'" in err
     assert main([run_dir, "--seed-index", "3"]) == 2
     assert main([str(tmp_path / "missing")]) == 2
 
@@ -101,9 +109,11 @@ def test_cli_trace_csv_holds_the_rollout_behind_the_metrics(tmp_path):
     per physics step, whose errors are the positions' distances and sum to Σ‖e‖."""
     out = tmp_path / "geometric.json"
     args = ["--controller", "geometric", "--track", "spiral_rt", "--no-timing", "--json", str(out)]
-    assert main(args) == 0
+    assert main([*args, "--env-overrides", 'quad={"mass": 1.8}']) == 0  # a heavier vehicle
     with open(out) as fh:
-        res = json.load(fh)["results"]["geometric"]["spiral_rt"]
+        saved = json.load(fh)
+    assert saved["env_config"]["quad"]["mass"] == 1.8 and saved["env_overrides"] == ['quad={"mass": 1.8}']
+    res = saved["results"]["geometric"]["spiral_rt"]
     rows = read_trace(str(tmp_path / "spiral_rt_trace.csv"))
     assert not (tmp_path / "los_rt_trace.csv").exists()
     assert set(rows["label"]) == {"geometric"} and rows.size == 3000

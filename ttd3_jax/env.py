@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import io
+import json
 import math
 
 import jax
@@ -245,6 +246,30 @@ def config_value(name: str, value):
     merged = {k: getattr(default, k) for k in allowed}
     merged.update({k: _like(merged[k], v) for k, v in value.items()})
     return type(default).create(**merged) if hasattr(type(default), "create") else type(default)(**merged)
+
+
+def parse_overrides(items, refused: dict[str, str] | None = None) -> dict:
+    """Command-line overrides ``["name=value", ...]`` as ``{field: value}`` in the types of
+    ``EnvConfig`` (:func:`config_value`).  ``value`` is read as JSON when it parses (numbers,
+    ``true``, lists, objects for the nested ``quad`` / ``tracks``), else as a plain string.
+    ``refused`` maps fields that may not be set here to the reason.  Raises ``ValueError``
+    naming the bad entry."""
+    refused = refused or {}
+    out = {}
+    for item in items:
+        if not isinstance(item, str) or "=" not in item:
+            raise ValueError(f"an env override is 'name=value', got {item!r}")
+        name, text = (x.strip() for x in item.split("=", 1))
+        if name in refused:
+            raise ValueError(f"{name!r} cannot be overridden ({refused[name]})")
+        if name in out:
+            raise ValueError(f"{name!r} is overridden twice")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text  # a bare word: a string field such as obs_frame=heading
+        out[name] = config_value(name, value)
+    return out
 
 
 def make_config(preset: str = "paper", **overrides) -> EnvConfig:

@@ -48,10 +48,17 @@ from ttd3_jax.env import (
     control_to_action,
     hover_action,
     make_config,
+    parse_overrides,
 )
 from ttd3_jax.geometric import GeometricGains, geometric_control
 
 CONTROLLERS = ("geometric", "hover", "nmpc")
+# set by the evaluation protocol (EnvConfig.for_eval), so not by --env-overrides
+EVAL_PROTOCOL_FIELDS = {
+    name: "set by the evaluation protocol (--track, --los-seed; --robustness for wind and noise)"
+    for name in ("track", "los_seed", "randomize_init", "terminate", "wind_sigma",
+                 "obs_noise_pos", "obs_noise_vel", "obs_noise_quat")
+}  # fmt: skip
 
 
 class Controller(NamedTuple):
@@ -653,6 +660,15 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--preset", default=None, choices=PRESETS, help="env preset of --controller (default paper)"
     )
+    ap.add_argument(
+        "--env-overrides",
+        nargs="+",
+        default=None,
+        metavar="NAME=VALUE",
+        help="EnvConfig fields of --controller's env (and of its model) on top of --preset "
+        "(values in JSON), e.g. "
+        "action_repeat=5 'quad={\"mass\": 1.8}'; the evaluation protocol's fields are refused",
+    )
     ap.add_argument("--track", default="all", choices=("all", *tr.TEST_TRACKS))
     ap.add_argument("--los-seed", type=int, default=0, help="LOS-RT test instance (0 = headline)")
     ap.add_argument("--json", default=None, help="write results here (default RUN_DIR/evaluation.json)")
@@ -690,7 +706,11 @@ def main(argv=None) -> int:
         if value is not None
     }
     if args.run_dir is not None:
-        for flag, value in (("--controller", args.controller), ("--preset", args.preset)):
+        for flag, value in (
+            ("--controller", args.controller),
+            ("--preset", args.preset),
+            ("--env-overrides", args.env_overrides),
+        ):
             if value is not None:
                 ap.error(f"{flag} does not apply to RUN_DIR (the run's policy and env config are used)")
         if options:
@@ -703,6 +723,11 @@ def main(argv=None) -> int:
             ap.error("--best needs RUN_DIR")
         args.controller = args.controller or "geometric"
         args.preset = args.preset or "paper"
+        try:
+            env_overrides = parse_overrides(args.env_overrides or (), EVAL_PROTOCOL_FIELDS)
+            make_config(args.preset, **env_overrides)
+        except (TypeError, ValueError) as e:
+            ap.error(f"--env-overrides: {e}")
         if options and args.controller != "nmpc":
             ap.error("--nmpc-* options need --controller nmpc")
         if options:
@@ -741,12 +766,15 @@ def main(argv=None) -> int:
         )
         sequential = False
     else:
-        cfg = make_config(args.preset)
+        cfg = make_config(args.preset, **env_overrides)
         build = controller_build(args.controller, cfg.for_eval("los_rt"), **options)
         labels = {args.controller: None}
-        header.update(controller=args.controller, options=options, preset=args.preset)
+        header.update(
+            controller=args.controller, options=options, preset=args.preset, env_overrides=args.env_overrides
+        )
         opts = "".join(f" {k}={v}" for k, v in options.items())
-        print(f"controller={args.controller}{opts} preset={args.preset} device={device}")
+        env_o = f" env_overrides={' '.join(args.env_overrides)}" if args.env_overrides else ""
+        print(f"controller={args.controller}{opts} preset={args.preset}{env_o} device={device}")
         sequential = args.controller == "nmpc" and options.get("solve_every", 1) > 1
     header["env_config"] = dataclasses.asdict(cfg)
     tracks = tr.TEST_TRACKS if args.track == "all" else (args.track,)

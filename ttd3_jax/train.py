@@ -36,7 +36,7 @@ from ttd3_jax import buffer as rb
 from ttd3_jax import noise as nz
 from ttd3_jax import normalize as nrm
 from ttd3_jax.env import PRESETS as ENV_PRESETS
-from ttd3_jax.env import TrackingEnv, config_value, make_config
+from ttd3_jax.env import TrackingEnv, make_config, parse_overrides
 from ttd3_jax.evaluate import Controller, evaluate_on_tracks, test_tracks
 from ttd3_jax.losses import actor_loss, critic_loss
 from ttd3_jax.networks import CRITICS, Networks, init_params, make_networks, twin_q
@@ -285,21 +285,7 @@ _NOT_OVERRIDABLE = {"track": "training draws the training mixture", "los_seed": 
 
 def env_override_items(c: TrainConfig) -> dict:
     """``c.env_overrides`` parsed: ``{field: value}`` in the types of ``EnvConfig``."""
-    out = {}
-    for item in c.env_overrides:
-        if not isinstance(item, str) or "=" not in item:
-            raise ValueError(f"an env override is 'name=value', got {item!r}")
-        name, text = (x.strip() for x in item.split("=", 1))
-        if name in _NOT_OVERRIDABLE:
-            raise ValueError(f"{name!r} cannot be overridden ({_NOT_OVERRIDABLE[name]})")
-        if name in out:
-            raise ValueError(f"{name!r} is overridden twice")
-        try:
-            value = json.loads(text)
-        except json.JSONDecodeError:
-            value = text  # a bare word: a string field such as obs_frame=heading
-        out[name] = config_value(name, value)
-    return out
+    return parse_overrides(c.env_overrides, _NOT_OVERRIDABLE)
 
 
 def env_override(name: str, value) -> str:
