@@ -54,7 +54,6 @@ import argparse
 import dataclasses
 import datetime
 import json
-import math
 import os
 import platform
 import time
@@ -64,7 +63,6 @@ import jax
 import jax.numpy as jnp
 
 import ttd3_jax.env as env_module
-from ttd3_jax import rng
 from ttd3_jax import trajectories as tr
 from ttd3_jax.dynamics import rk4_step
 from ttd3_jax.env import TrackingEnv, action_to_control, make_config
@@ -182,12 +180,10 @@ def lookup_case(cfg, n_envs, n_steps, env_last=False):
 def wind_case(cfg, n_envs, n_steps, layout="env_first"):
     """The env's OU wind update alone (``env._substep``'s draw): ``layout`` is
     ``env_first`` (Brax), ``env_last``, or ``env_last_T`` (carried env-first, drawn env-last)."""
-    phi = math.exp(-cfg.dt / cfg.wind_tau)
-    scale = cfg.wind_sigma * math.sqrt(1.0 - phi * phi)
 
     def draw(key, wind):
-        key, sub = rng.split(key)
-        return key, phi * wind + scale * rng.normal(sub, (3,), wind.dtype)
+        wind, key = env_module.ou_wind_step(cfg, wind, key)
+        return key, wind
 
     keys = _reset(cfg, n_envs)[1].pipeline_state.key
     wind0 = jnp.zeros((n_envs, 3), jnp.float32)

@@ -50,7 +50,8 @@ def probe(run_dir: str, epoch: int | None = None, seed_index: int = 0, track: st
     env = TrackingEnv(cfg.for_eval(track))
     s0 = env.reset(jax.random.PRNGKey(0))
     st = jax.tree.map(lambda x: x[seed_index], state)
-    obs = nrm.apply(st.obs_stats if c.normalize_obs else None, s0.obs)
+    stats = st.obs_stats if c.normalize_obs else None
+    obs = nrm.apply(stats, s0.obs)
     nets = trainer.nets
     a_pi = nets.actor.apply(st.actor, obs)
     a_hover = hover_action(cfg).astype(a_pi.dtype)
@@ -62,7 +63,6 @@ def probe(run_dir: str, epoch: int | None = None, seed_index: int = 0, track: st
     moved = jnp.clip(a_pi[None] + steps, -1.0, 1.0)
     dq = jnp.abs(jax.vmap(q)(moved) - q(a_pi)[None])  # (8, 2)
     out = dict(policy=a_pi, hover=a_hover, q_policy=q(a_pi), q_hover=q(a_hover), max_dq=dq.max(0))
-    stats = st.obs_stats if c.normalize_obs else None
     controllers = {"policy": policy_controller(nets, st.actor, stats), "hover": hover_controller(cfg)}
     for name, ctrl in controllers.items():
         r = jax.jit(lambda s, ctrl=ctrl: closed_loop(env, ctrl, s))(s0)

@@ -51,6 +51,9 @@ ERR_COSTS = ("paper", "squared")
 OBS_FRAMES = ("world", "track", "heading", "error")
 RATE_MAPS = ("linear", "cubic")
 PRESETS = ("paper", "practical")
+# the fields EnvConfig.for_eval sets (keep the two together)
+EVAL_PROTOCOL_FIELDS = ("track", "los_seed", "randomize_init", "terminate", "wind_sigma",
+                        "obs_noise_pos", "obs_noise_vel", "obs_noise_quat")  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)
@@ -193,7 +196,8 @@ class EnvConfig:
 
     def for_eval(self, track: str, los_seed: int = 0, wind_sigma: float = 0.0) -> EnvConfig:
         """The evaluation protocol (spec §2.5): fixed track, start on p_d(0) at rest and
-        level, no early termination, no observation noise, optional wind."""
+        level, no early termination, no observation noise, optional wind.  It sets exactly
+        the fields in ``EVAL_PROTOCOL_FIELDS``."""
         return dataclasses.replace(
             self,
             track=track,
@@ -528,10 +532,7 @@ class TrackingEnv(Env):
         c = self.config
         quad, k, wind, key, reward, err_sum, crashed = carry
         if c.wind_sigma > 0:
-            key, sub = rng.split(key)
-            phi = math.exp(-c.dt / c.wind_tau)
-            xi = rng.normal(sub, (3,), wind.dtype)
-            wind = phi * wind + c.wind_sigma * math.sqrt(1.0 - phi * phi) * xi
+            wind, key = ou_wind_step(c, wind, key)
         quad = rk4_step(
             c.quad, quad, u, c.dt, wind if c.wind_sigma > 0 else None, c.rk4_substeps, c.renormalize
         )
@@ -620,6 +621,16 @@ class TrackingEnv(Env):
             parts.append(x.w)
         # non-finite entries (a diverged state) read as 0, in one read of the concatenation
         return _zero_non_finite(jnp.concatenate(parts)), ps
+
+
+def ou_wind_step(c: EnvConfig, wind: jax.Array, key: jax.Array):
+    """One physics step (``c.dt``) of the OU wind acceleration ``wind`` (3,) m/s², with
+    stationary std ``c.wind_sigma`` and correlation time ``c.wind_tau``; returns
+    ``(wind, key)`` (one split and 3 normals of ``ttd3_jax.rng``)."""
+    key, sub = rng.split(key)
+    phi = math.exp(-c.dt / c.wind_tau)
+    xi = rng.normal(sub, (3,), wind.dtype)
+    return phi * wind + c.wind_sigma * math.sqrt(1.0 - phi * phi) * xi, key
 
 
 def yaw_of(q: jax.Array) -> jax.Array:

@@ -41,6 +41,7 @@ from flax import struct
 from ttd3_jax import trajectories as tr
 from ttd3_jax.dynamics import QuadState
 from ttd3_jax.env import (
+    EVAL_PROTOCOL_FIELDS,
     PRESETS,
     EnvConfig,
     TrackingEnv,
@@ -49,16 +50,13 @@ from ttd3_jax.env import (
     hover_action,
     make_config,
     parse_overrides,
+    yaw_of,
 )
 from ttd3_jax.geometric import GeometricGains, geometric_control
 
 CONTROLLERS = ("geometric", "hover", "nmpc")
 # set by the evaluation protocol (EnvConfig.for_eval), so not by --env-overrides
-EVAL_PROTOCOL_FIELDS = {
-    name: "set by the evaluation protocol (--track, --los-seed; --robustness for wind and noise)"
-    for name in ("track", "los_seed", "randomize_init", "terminate", "wind_sigma",
-                 "obs_noise_pos", "obs_noise_vel", "obs_noise_quat")
-}  # fmt: skip
+_PROTOCOL_REASON = "set by the evaluation protocol (--track, --los-seed; --robustness for wind and noise)"
 
 
 class Controller(NamedTuple):
@@ -342,8 +340,7 @@ def write_traces(traces: dict[str, dict[str, Trace]], out_dir: str, prefix: str 
                 if track not in v:
                     continue
                 x = v[track]
-                yaw = np.arctan2(2 * (x.quat[:, 0] * x.quat[:, 3] + x.quat[:, 1] * x.quat[:, 2]),
-                                 1 - 2 * (x.quat[:, 2] ** 2 + x.quat[:, 3] ** 2))  # env.yaw_of  # fmt: skip
+                yaw = np.asarray(yaw_of(x.quat.T))
                 cols = np.column_stack([x.t, x.pos, x.ref, x.error, x.action, x.vel, x.quat, yaw])
                 name = str(label).replace(",", ";")
                 for row in cols:
@@ -724,7 +721,9 @@ def main(argv=None) -> int:
         args.controller = args.controller or "geometric"
         args.preset = args.preset or "paper"
         try:
-            env_overrides = parse_overrides(args.env_overrides or (), EVAL_PROTOCOL_FIELDS)
+            env_overrides = parse_overrides(
+                args.env_overrides or (), dict.fromkeys(EVAL_PROTOCOL_FIELDS, _PROTOCOL_REASON)
+            )
             make_config(args.preset, **env_overrides)
         except (TypeError, ValueError) as e:
             ap.error(f"--env-overrides: {e}")
