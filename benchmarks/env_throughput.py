@@ -11,27 +11,20 @@ vehicles.  Compile time is reported apart from run time; run time is the best of
 
 Cases:
   rk4          bare model: vmapped rk4_step with fixed controls (the floor)
-  ref_lookup   the reference lookup alone: trajectories.position at k+1 for every env, the
+  ref_lookup   the reference lookup alone: sim.trajectories.position at k+1 for every env, the
                one lookup each env step makes (a per-env gather from the segment table and
                the spiral formula, selected by track kind)
   env_nominal  env.step on training-mixture tracks, no wind, no observation noise
   env_paper    env.step with the paper preset's training wind (OU, one normal draw per step)
-  env_before   env_nominal as it was before the fusion fix of 2026-12-01 (finiteness by
-               jnp.sum, a reduction per state leaf), for the before/after ratio
-  env_paper_jaxrng  env_paper with the wind drawn by jax.random instead of ttd3_jax.rng
-               (the same numbers; Threefry as jax's rolled loop), for the before/after ratio
   env_practical  env.step under the ``practical`` preset (10 RK4 steps per env step, 50-step
                look-ahead, track frame), no wind, run for steps/10 env steps: as many RK4 steps
                as the other cases, so its env-steps/s and x rk4 count physics steps
-  env_mask_before  env_nominal with the observation's non-finite mask as it was until the
-               mask fix of 2026-12-01 (``jnp.where(jnp.isfinite(obs), obs, 0)``: it reads the
-               concatenated observation twice, so XLA:CPU writes it out first), for the
-               before/after ratio
 
 Ablations (``--ablate``; not envs anyone should use, they show where env_nominal's time
-goes beyond the RK4 step):
+goes beyond the RK4 step; each is a subclass of the env overriding its observation):
   abl_no_lookup    env_nominal with the reference lookup replaced by a cheap stand-in of the
-               same shape (no gather, no sin/cos); the observation is built as usual
+               same shape (no gather, no sin/cos); the observation is built as usual (the
+               env's own ``observe`` for this config, with the stand-in lookup)
   abl_no_obs       env_nominal with the 17-D observation replaced by a one-entry stand-in
                (the lookup at k+1 and the reward stay)
   abl_neither      both: RK4, the tracking error, reward, crash test and metrics remain
@@ -57,51 +50,14 @@ import json
 import os
 import platform
 import time
-import types
 
 import jax
 import jax.numpy as jnp
 
-import ttd3_jax.env as env_module
-from ttd3_jax import trajectories as tr
-from ttd3_jax.dynamics import rk4_step
-from ttd3_jax.env import TrackingEnv, action_to_control, make_config
-
-
-class _EnvBefore(TrackingEnv):
-    """A former form of the env step, for before/after ratios: ``env.step`` traced with
-    some of ``ttd3_jax.env``'s module functions swapped back (the step is only traced, so
-    swapping for the trace is enough)."""
-
-    swaps: dict = {}
-
-    def step(self, state, action):
-        saved = {name: getattr(env_module, name) for name in self.swaps if hasattr(env_module, name)}
-        try:
-            for name in saved:
-                setattr(env_module, name, self.swaps[name])
-            return super().step(state, action)
-        finally:
-            for name, fn in saved.items():
-                setattr(env_module, name, fn)
-
-
-class _FusionBefore(_EnvBefore):
-    """Before 2026-12-01: the finiteness check by ``jnp.sum`` (a reduction per leaf)."""
-
-    swaps = {"_finite": lambda x: jnp.isfinite(sum(jnp.sum(leaf) for leaf in jax.tree.leaves(x)))}
-
-
-class _JaxRngBefore(_EnvBefore):
-    """Before 2026-12-01: wind drawn with jax.random (Threefry as a rolled loop on CPU)."""
-
-    swaps = {"rng": types.SimpleNamespace(split=jax.random.split, normal=jax.random.normal)}
-
-
-class _MaskBefore(_EnvBefore):
-    """Until the mask fix of 2026-12-01: the observation mask by ``jnp.where`` (two reads of the obs)."""
-
-    swaps = {"_zero_non_finite": lambda obs: jnp.where(jnp.isfinite(obs), obs, 0.0)}
+from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim.config import make_config
+from ttd3_jax.sim.dynamics import rk4_step
+from ttd3_jax.sim.env import TrackingEnv, _zero_non_finite, action_to_control, ou_wind_step
 
 
 def _stand_in_position(track, k, dt):
@@ -109,10 +65,33 @@ def _stand_in_position(track, k, dt):
     return track.seg[..., 0, 0, :] + k.astype(track.seg.dtype) * dt
 
 
-class _NoLookup(_EnvBefore):
-    """``trajectories`` as the env step sees it, with ``position`` swapped for the stand-in."""
+class _NoLookup(TrackingEnv):
+    """The env with every reference lookup of its step replaced by ``position``: the step's
+    one lookup (p_d at k+1, in ``observe``; ``_substep`` reuses it at ``action_repeat`` 1)
+    and p_d at k (passed in by ``step``).  ``observe`` is the env's own for the nominal
+    config (world frame, ``err_ref="current"``, look-ahead 1, no noise, canonical q)."""
 
-    swaps = {"tr": types.SimpleNamespace(**{**vars(tr), "position": _stand_in_position})}
+    position = staticmethod(_stand_in_position)
+
+    def __init__(self, config=None, **overrides):
+        super().__init__(config, **overrides)
+        c = self.config
+        nominal = dict(
+            obs_frame="world", err_ref="current", lookahead_k=1, action_repeat=1, canonical_q_obs=True
+        )
+        wrong = {k: getattr(c, k) for k, v in nominal.items() if getattr(c, k) != v}
+        noisy = max(c.wind_sigma, c.obs_noise_pos, c.obs_noise_vel, c.obs_noise_quat) > 0
+        if wrong or noisy or self._rates_in_obs:
+            raise ValueError(f"{type(self).__name__} stands in for the nominal env only; got {wrong}")
+
+    def observe(self, ps, p_ref_now=None):
+        x = ps.quad
+        q = jnp.where(x.q[0] < 0, -x.q, x.q)
+        p_ahead = self.position(ps.track, ps.k + 1, self.config.dt)
+        ps = ps.replace(ref_next=p_ahead)
+        p_now = self.position(ps.track, ps.k, self.config.dt) if p_ref_now is None else p_ref_now
+        err = jnp.linalg.norm(p_now - x.p)
+        return _zero_non_finite(jnp.concatenate([x.p, x.v, q, p_ahead, p_ahead - x.p, err[None]])), ps
 
 
 class _NoObs(TrackingEnv):
@@ -182,7 +161,7 @@ def wind_case(cfg, n_envs, n_steps, layout="env_first"):
     ``env_first`` (Brax), ``env_last``, or ``env_last_T`` (carried env-first, drawn env-last)."""
 
     def draw(key, wind):
-        wind, key = env_module.ou_wind_step(cfg, wind, key)
+        wind, key = ou_wind_step(cfg, wind, key)
         return key, wind
 
     keys = _reset(cfg, n_envs)[1].pipeline_state.key
@@ -247,13 +226,6 @@ def main(argv=None):
         "ref_lookup": lookup_case(dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps),
         "env_nominal": env_case(dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps),
         "env_paper": env_case(base, args.envs, args.steps),
-        "env_before": env_case(
-            dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps, _FusionBefore
-        ),
-        "env_paper_jaxrng": env_case(base, args.envs, args.steps, _JaxRngBefore),
-        "env_mask_before": env_case(
-            dataclasses.replace(base, wind_sigma=0.0), args.envs, args.steps, _MaskBefore
-        ),
     }
     practical = dataclasses.replace(make_config("practical"), wind_sigma=0.0)
     if args.steps % practical.action_repeat == 0:

@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import hashlib
-import os
 import sys
 
 import jax
@@ -38,9 +37,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ttd3_jax import sharding
-from ttd3_jax.env import TrackingEnv, make_config
-from ttd3_jax.runner import per_seed
-from ttd3_jax.train import make_trainer, preset, seed_keys
+from ttd3_jax.report import device_description
+from ttd3_jax.sim.config import make_config
+from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.spec import preset, trainer_for
+from ttd3_jax.td3.trainer import seed_keys
 
 
 def digest(tree) -> str:
@@ -89,11 +90,11 @@ def env_cases():
 
 def train_fingerprint(name: str):
     """``(state digest, eval digest)`` after init and the first epoch, as the CLI runs them."""
-    c = preset(name)
-    t = make_trainer(c)
-    init_fn, epoch_fn, eval_fn, _ = sharding.runner_fns(t, c, per_seed)
-    ts = init_fn(seed_keys(c), c.hp)
-    ts, m = epoch_fn(ts, c.hp)
+    spec = preset(name)
+    keys = seed_keys(spec.seed, spec.num_seeds)
+    init_fn, epoch_fn, eval_fn, _ = sharding.runner_fns(trainer_for(spec), keys, spec.hp)
+    ts = init_fn(keys, spec.hp)
+    ts, m = epoch_fn(ts, spec.hp)
     return digest((ts, m)), digest(eval_fn(ts))
 
 
@@ -107,7 +108,7 @@ def main(argv=None):
     if args.compare:
         with open(args.compare) as fh:
             want = dict(line.split() for line in fh if line.strip() and not line.startswith("#"))
-    print(f"# jax {jax.__version__}, {jax.devices()[0].platform}, cpus={os.cpu_count()}")
+    print(f"# jax {jax.__version__}, {device_description()}")
     got = {}
     for name, cfg in env_cases().items():
         got[name] = digest(env_rollout(cfg))

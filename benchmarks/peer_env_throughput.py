@@ -64,8 +64,8 @@ def build_ours(case: str, envs: int, steps: int):
     import jax
     from env_throughput import env_case, rk4_case
 
-    from ttd3_jax.dynamics import QuadParams
-    from ttd3_jax.env import make_config
+    from ttd3_jax.sim.config import make_config
+    from ttd3_jax.sim.dynamics import QuadParams
 
     base = make_config("paper")
     nominal = dataclasses.replace(base, wind_sigma=0.0)

@@ -31,7 +31,7 @@ import jax  # noqa: E402
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import env_throughput as et  # noqa: E402
 
-from ttd3_jax.env import make_config  # noqa: E402
+from ttd3_jax.sim.config import make_config  # noqa: E402
 
 CASES = ("rk4", "env_nominal", "env_paper")
 # opcodes worth naming when saying what a kernel does (elementwise arithmetic is implied)

@@ -16,14 +16,9 @@ Cases (quadrotor, ``fast_dpg`` preset, the TD3 actor update through the critic, 
   net256          256-256 networks (the paper's width)
   batch1024       minibatches of 1024 instead of 256 (4x the samples per update)
   seeds4          4 seeds vmapped in one program (per-seed figures are the total / 4)
-  fast_caps, net256_caps   fast / net256 with the CAPS actor terms compiled in: the cost
-                  of the static CAPS switch's absence (before/after of that change)
   model_h50       the ``fast`` preset: per vector step a 50-step differentiable rollout of
                   the 64 envs (the actor update), then 16 critic updates
   model_h50_utd1  model_h50 with 1 critic update per vector step instead of 16
-  fast_jaxrng, model_h50_jaxrng   fast / model_h50 with the env's wind drawn by jax.random
-                  instead of ttd3_jax.rng (the same numbers; jax's Threefry is a rolled loop
-                  on CPU): the before/after of that change
 
 ``--large`` (for a GPU) replaces the CPU study with thousands of envs:
   fast                    the ``fast_dpg`` preset as above (the reference)
@@ -36,31 +31,16 @@ Cases (quadrotor, ``fast_dpg`` preset, the TD3 actor update through the critic, 
 from __future__ import annotations
 
 import argparse
-import contextlib
-import dataclasses
 import datetime
 import json
 import os
 import platform
 import time
-import types
 
 import jax
 
-import ttd3_jax.env as env_module
-from ttd3_jax.train import make_trainer, preset, seed_keys
-
-JAX_RNG = types.SimpleNamespace(split=jax.random.split, normal=jax.random.normal)
-
-
-@contextlib.contextmanager
-def env_rng(module):
-    """Trace the env with ``module`` as its ``rng`` (only traced, so this is enough)."""
-    saved, env_module.rng = env_module.rng, module
-    try:
-        yield
-    finally:
-        env_module.rng = saved
+from ttd3_jax import spec as sp
+from ttd3_jax.td3.trainer import seed_keys
 
 
 def large_cases() -> dict:
@@ -68,7 +48,7 @@ def large_cases() -> dict:
 
     def cfg(num_envs=64, vsteps=500, **kw):
         total = base["warmup_transitions"] + num_envs * vsteps
-        return preset("fast_dpg", **{**base, "num_envs": num_envs, "total_transitions": total, **kw})
+        return sp.preset("fast_dpg", **{**base, "num_envs": num_envs, "total_transitions": total, **kw})
 
     return {
         "fast": (cfg(), False),
@@ -87,30 +67,23 @@ def cases(quick: bool) -> dict:
 
     def cfg(num_envs=64, **kw):
         total = kw.pop("total", steps) + base["warmup_transitions"]
-        return preset("fast_dpg", **{**base, "num_envs": num_envs, "total_transitions": total, **kw})
+        return sp.preset("fast_dpg", **{**base, "num_envs": num_envs, "total_transitions": total, **kw})
 
-    caps_hp = dataclasses.replace(preset("fast_dpg").hp, smooth_time=1e-12)
     model_steps = 4 if quick else 40  # vector steps (actor updates) of the model-based case
     model_total = base["warmup_transitions"] + 64 * 50 * model_steps
-    model = preset("fast", **{**base, "total_transitions": model_total})
+    model = sp.preset("fast", **{**base, "total_transitions": model_total})
     out = {
         "fast": (cfg(), False),
         "fast_vmap1": (cfg(), True),
         "envs16_utd16": (cfg(num_envs=16, total=steps // 4), False),
         "envs256_utd16": (cfg(num_envs=256, total=steps * 4), False),
         "net256": (cfg(hidden=(256, 256), total=steps // 4), False),
-        # the actor loss with the CAPS terms compiled in (as every run had before the static
-        # switch; a negligible weight, so the same work as a real CAPS run)
-        "fast_caps": (cfg(hp=caps_hp), False),
-        "net256_caps": (cfg(hidden=(256, 256), total=steps // 4, hp=caps_hp), False),
         "seeds4": (cfg(num_seeds=4, total=steps // 2), True),
         # the fast preset itself: a 50-step differentiable rollout (the actor update) per vector step
         "model_h50": (model, False),
-        # the same with one critic update per vector step instead of 16 (the actor does not use
-        # the critics at hp.model_bootstrap = 0; T-TD3's sigma is still updated per critic update)
-        "model_h50_utd1": (dataclasses.replace(model, updates_per_step=1), False),
-        "fast_jaxrng": (cfg(), False, JAX_RNG),
-        "model_h50_jaxrng": (model, False, JAX_RNG),
+        # the same with one critic update per vector step instead of 16 (the model-based actor
+        # does not use the critics; T-TD3's sigma is still updated per critic update)
+        "model_h50_utd1": (sp.replace(model, updates_per_step=1), False),
     }
     if quick:
         return {k: out[k] for k in ("fast", "fast_vmap1", "model_h50")}
@@ -118,24 +91,19 @@ def cases(quick: bool) -> dict:
     return out
 
 
-def build(c, vmapped: bool, rng=None):
-    with env_rng(rng or env_module.rng):
-        return _build(c, vmapped)
-
-
-def _build(c, vmapped: bool):
-    t = make_trainer(c)
-    keys = seed_keys(c)
+def build(s: sp.RunSpec, vmapped: bool):
+    t = sp.trainer_for(s)
+    keys = seed_keys(s.seed, s.num_seeds)
     if vmapped:
         init = jax.jit(jax.vmap(t.init, in_axes=(0, None)))
         epoch = jax.vmap(t.epoch, in_axes=(0, None))
-        ts = init(keys, c.hp)
+        ts = init(keys, s.hp)
     else:
-        ts = jax.jit(t.init)(keys[0], c.hp)
+        ts = jax.jit(t.init)(keys[0], s.hp)
         epoch = t.epoch
     jax.block_until_ready(ts)
     t0 = time.perf_counter()
-    compiled = jax.jit(epoch).lower(ts, c.hp).compile()
+    compiled = jax.jit(epoch).lower(ts, s.hp).compile()
     return compiled, ts, time.perf_counter() - t0
 
 
@@ -159,13 +127,13 @@ def main(argv=None):
         if bad:
             ap.error(f"unknown case(s) {bad}; allowed: {sorted(chosen)}")
         chosen = {k: v for k, v in chosen.items() if k in args.only or k == "fast"}  # fast: the reference
-    for name, (c, *how) in chosen.items():
-        built[name] = (c, *build(c, *how))
+    for name, (s, vmapped) in chosen.items():
+        built[name] = (s, *build(s, vmapped))
     best = {name: float("inf") for name in built}
     for _ in range(args.repeats):
-        for name, (c, fn, ts, _) in built.items():
+        for name, (s, fn, ts, _) in built.items():
             t0 = time.perf_counter()
-            jax.block_until_ready(fn(ts, c.hp))
+            jax.block_until_ready(fn(ts, s.hp))
             best[name] = min(best[name], time.perf_counter() - t0)
 
     dev = jax.devices()[0]
@@ -174,18 +142,19 @@ def main(argv=None):
         f"{'case':<22} {'envs':>5} {'UTD':>4} {'hidden':>8} {'seeds':>5} {'compile s':>9} {'run s':>7} "
         f"{'trans/s':>9} {'upd/s':>8} {'x fast':>6} {'samples/s':>9}"
     )
-    fc = built["fast"][0]
+    fc = built["fast"][0].train
     fast_upd = fc.steps_per_epoch * fc.updates_per_step / best["fast"]
     rows = []
-    for name, (c, _, _, comp) in built.items():
-        trans = c.num_seeds * c.steps_per_epoch * c.num_envs * c.env_steps_per_step
-        upd = c.num_seeds * c.steps_per_epoch * c.updates_per_step
+    for name, (s, _, _, comp) in built.items():
+        c = s.train
+        trans = s.num_seeds * c.steps_per_epoch * c.num_envs * c.env_steps_per_step
+        upd = s.num_seeds * c.steps_per_epoch * c.updates_per_step
         row = dict(
             case=name,
             num_envs=c.num_envs,
             updates_per_step=c.updates_per_step,
             hidden=list(c.hidden),
-            num_seeds=c.num_seeds,
+            num_seeds=s.num_seeds,
             compile_s=comp,
             run_s=best[name],
             transitions_per_s=trans / best[name],
@@ -197,7 +166,7 @@ def main(argv=None):
         rows.append(row)
         print(
             f"{name:<22} {c.num_envs:>5} {c.updates_per_step:>4} {'-'.join(map(str, c.hidden)):>8} "
-            f"{c.num_seeds:>5} {comp:>9.1f} {best[name]:>7.2f} {row['transitions_per_s']:>9.3g} "
+            f"{s.num_seeds:>5} {comp:>9.1f} {best[name]:>7.2f} {row['transitions_per_s']:>9.3g} "
             f"{row['updates_per_s']:>8.3g} {row['updates_per_s_vs_fast']:>6.2f} {row['samples_per_s']:>9.3g}"
         )
     record = dict(

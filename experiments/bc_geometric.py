@@ -1,6 +1,6 @@
 """Diagnostic: can the ``fast_dpg`` preset's actor represent a precise tracker at all?
 
-Behaviour-clones the geometric controller (ttd3_jax/geometric.py) into the same actor the
+Behaviour-clones the geometric controller (ttd3_jax/control/geometric.py) into the same actor the
 ``fast_dpg`` preset trains (64-64 ReLU MLP, tanh output, running-statistics input
 normalisation) and the same observation (the ``practical`` env, track frame).  No RL is
 involved: this separates what the observation and the network can express from what the
@@ -33,17 +33,20 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from ttd3_jax import evaluate as E
-from ttd3_jax import normalize as nrm
-from ttd3_jax import train as T
-from ttd3_jax.env import TrackingEnv, make_config
-from ttd3_jax.networks import make_networks
-from ttd3_jax.train import policy_controller
+from ttd3_jax import spec as sp
+from ttd3_jax.control.closed_loop import evaluate_on_tracks, policy_controller, test_tracks
+from ttd3_jax.control.geometric import geometric_controller
+from ttd3_jax.control.paper import PAPER_TTD3
+from ttd3_jax.sim.config import make_config
+from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.td3 import normalize as nrm
+from ttd3_jax.td3.networks import make_networks
+from ttd3_jax.td3.trainer import seed_keys, with_actor
 
 
 def collect(env: TrackingEnv, key: jax.Array, n_envs: int, noise: float):
     """Observations (n_envs·T, 17) and the geometric controller's actions (n_envs·T, 4)."""
-    geo = E.geometric_controller(env.config)
+    geo = geometric_controller(env.config)
 
     def episode(k):
         k_reset, k_noise = jax.random.split(k)
@@ -65,8 +68,13 @@ def test_errors(cfg, controller) -> tuple[float, float]:
     out = []
     for i, track in enumerate(("spiral_rt", "los_rt")):
         env = TrackingEnv(cfg.for_eval(track))
-        out.append(float(E.evaluate_on_tracks(env, controller, E.test_tracks(env))["tracking_error"][i]))
+        out.append(float(evaluate_on_tracks(env, controller, test_tracks(env))["tracking_error"][i]))
     return out[0], out[1]
+
+
+def clone_controller(nets, params, stats):
+    """The cloned actor as a controller (raw observations, normalised by ``stats``)."""
+    return policy_controller(lambda obs: nets.actor.apply(params, nrm.apply(stats, obs)))
 
 
 def main(argv=None) -> int:
@@ -119,15 +127,16 @@ def main(argv=None) -> int:
         (p, s), losses = jax.lax.scan(step, (params, opt_state), jax.random.split(key, args.steps_per_round))
         return p, s, losses[-100:].mean()
 
-    geo = test_errors(cfg, E.geometric_controller(cfg))
+    geo = test_errors(cfg, geometric_controller(cfg))
     print(f"geometric controller (the teacher): Spiral-RT {geo[0]:.2f}  LOS-RT {geo[1]:.2f}")
     print(f"{'round':>5} {'fit steps':>9} {'MSE':>9} {'Spiral-RT':>10} {'LOS-RT':>9} {'wall s':>7}")
     for r, k in enumerate(jax.random.split(key_fit, args.rounds)):
         params, opt_state, loss = fit(params, opt_state, k)
-        sp, los = test_errors(cfg, policy_controller(nets, params, stats))
+        spiral, los = test_errors(cfg, clone_controller(nets, params, stats))
         steps, wall = (r + 1) * args.steps_per_round, time.perf_counter() - t0
-        print(f"{r + 1:>5} {steps:>9} {float(loss):>9.2e} {sp:>10.2f} {los:>9.2f} {wall:>7.1f}")
-    print("paper T-TD3: Spiral-RT 25.99  LOS-RT 398.74")
+        print(f"{r + 1:>5} {steps:>9} {float(loss):>9.2e} {spiral:>10.2f} {los:>9.2f} {wall:>7.1f}")
+    paper = PAPER_TTD3["spiral_tracking_error"], PAPER_TTD3["los_tracking_error"]
+    print(f"paper T-TD3: Spiral-RT {paper[0]}  LOS-RT {paper[1]}")
     if args.then_ttd3:
         then_ttd3(params, stats, tuple(args.hidden), *args.then_ttd3, quick=args.quick, t0=t0)
     return 0
@@ -139,14 +148,14 @@ def then_ttd3(actor, stats, hidden, frozen: int, full: int, quick: bool, t0: flo
     if quick:
         over.update(num_envs=16, total_transitions=16 * 40, warmup_transitions=16 * 8, buffer_size=16 * 64,
                     batch_size=64, updates_per_step=2, epochs=2)  # fmt: skip
-    c = T.preset("fast_dpg", **over)
-    t = T.make_trainer(c)
-    ts = jax.jit(t.init)(T.seed_keys(c)[0], c.hp)
+    s = sp.preset("fast_dpg", **over)
+    t = sp.trainer_for(s)
+    ts = jax.jit(t.init)(seed_keys(s.seed, s.num_seeds)[0], s.hp)
     big = 1e12  # a count this large freezes the running statistics
     frozen_stats = nrm.ObsStats(count=jnp.asarray(big), mean=stats.mean, m2=stats.m2 / stats.count * big)
-    ts = T.with_actor(ts, actor, c.hp).replace(obs_stats=frozen_stats)
+    ts = with_actor(t.setup, ts, actor, s.hp).replace(obs_stats=frozen_stats)
     evaluate, epoch = jax.jit(t.evaluate), jax.jit(t.epoch)
-    no_actor = c.hp.replace(lr_actor=0.0)
+    no_actor = s.hp.replace(lr_actor=0.0)
     print(f"T-TD3 (fast_dpg preset) from the clone: {frozen} epoch(s) critic-only, then {full} in full")
     print(f"{'epoch':>5} {'actor':>6} {'σ':>9} {'Spiral-RT':>10} {'LOS-RT':>9} {'val':>9} {'wall s':>7}")
 
@@ -158,7 +167,7 @@ def then_ttd3(actor, stats, hidden, frozen: int, full: int, quick: bool, t0: flo
     show(0, "-", ts.noise.sigma, jax.device_get(evaluate(ts)))
     for e in range(frozen + full):
         learn = e >= frozen
-        ts, mm = epoch(ts, c.hp if learn else no_actor)
+        ts, mm = epoch(ts, s.hp if learn else no_actor)
         show(e + 1, "on" if learn else "frozen", mm["sigma"], jax.device_get(evaluate(ts)))
 
 

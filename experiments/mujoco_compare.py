@@ -57,8 +57,10 @@ PAPER_CLAIM = {
 
 
 def task_config(task: str, algo: str, a: argparse.Namespace):
-    """The TrainConfig of one task and algorithm (the ``mujoco`` preset, resized)."""
-    from ttd3_jax.train import preset, with_algo
+    """The RunSpec of one task and algorithm (the ``mujoco`` preset, resized)."""
+    import dataclasses
+
+    from ttd3_jax import spec as sp
 
     if a.eval_every % a.num_envs:
         raise ValueError(f"--eval-every ({a.eval_every}) must be a multiple of --num-envs ({a.num_envs})")
@@ -68,21 +70,20 @@ def task_config(task: str, algo: str, a: argparse.Namespace):
             f"--steps ({a.steps}) must leave at least one evaluation interval (--eval-every "
             f"{a.eval_every}) after the warm-up (--warmup {a.warmup})"
         )
-    c = preset(
+    s = sp.preset(
         "mujoco",
         env=task,
-        backend=a.backend,
+        algo=algo,
         num_envs=a.num_envs,
         updates_per_step=a.updates_per_step or a.num_envs,
         total_transitions=a.warmup + epochs * a.eval_every,
         warmup_transitions=a.warmup,
         buffer_size=min(1_000_000, a.warmup + epochs * a.eval_every),
         epochs=epochs,
-        eval_episodes=a.eval_episodes,
         seed=a.seed,
         num_seeds=a.seeds,
     )
-    return with_algo(c, algo)
+    return sp.replace(s, brax=dataclasses.replace(s.brax, backend=a.backend, eval_episodes=a.eval_episodes))
 
 
 def run_dir_of(out: str, task: str, algo: str) -> str | None:
@@ -117,7 +118,7 @@ def run_one(task: str, algo: str, a: argparse.Namespace) -> None:
 
 def collect_evals(out: str) -> list[dict]:
     """Rows (task, algo, seed, step, eval_return) from every run directory under ``out``."""
-    from ttd3_jax.runner import read_metrics
+    from ttd3_jax.runs import read_metrics
 
     rows = []
     for task in TASKS:
@@ -300,8 +301,7 @@ def budgets(out: str) -> list[dict]:
     """Per task and algorithm, the budget its run was trained with (from its config.json),
     and whether that is the paper's protocol (spec §2.7: 1M steps, 1 env, 1 update per
     step, 25k warm-up, evaluation every 5000 steps over 10 episodes, 3 seeds)."""
-    from ttd3_jax.runner import load_config
-    from ttd3_jax.train import total_epochs_transitions
+    from ttd3_jax.runs import load_spec
 
     rows = []
     for task in TASKS:
@@ -309,24 +309,25 @@ def budgets(out: str) -> list[dict]:
             d = run_dir_of(out, task, algo)
             if d is None:
                 continue
-            c = load_config(d)
+            s = load_spec(d)
+            c = s.train
             b = dict(
                 task=task,
                 algo=algo,
-                steps=total_epochs_transitions(c),
-                seeds=c.num_seeds,
+                steps=c.transitions_run,
+                seeds=s.num_seeds,
                 num_envs=c.num_envs,
                 updates_per_step=c.updates_per_step,
                 warmup=c.warmup_transitions,
                 eval_every=c.steps_per_epoch * c.num_envs,
-                eval_episodes=c.eval_episodes,
-                backend=c.backend,
+                eval_episodes=s.brax.eval_episodes,
+                backend=s.brax.backend,
                 finished=os.path.exists(os.path.join(d, "eval.json")),
             )
             b["protocol"] = (
                 b["steps"] >= PROTOCOL_STEPS and c.num_envs == 1 and c.updates_per_step == 1
                 and c.warmup_transitions == 25_000 and b["eval_every"] == 5000
-                and c.eval_episodes == 10 and c.num_seeds >= 3
+                and s.brax.eval_episodes == 10 and s.num_seeds >= 3
             )  # fmt: skip
             rows.append(b)
     return rows

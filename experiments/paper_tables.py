@@ -33,22 +33,16 @@ import time
 import jax
 import numpy as np
 
-from ttd3_jax import trajectories as tr
-from ttd3_jax.env import EnvConfig, TrackingEnv, make_config
-from ttd3_jax.evaluate import (
-    PAPER,
-    Evaluator,
-    Trace,
-    _json_safe,
-    controller_build,
-    device_description,
-    energy_paper_map,
-    load_run,
-    summarize,
-    test_tracks,
-    to_paper_map,
-)
-from ttd3_jax.plots import plot_traces
+from ttd3_jax import runner
+from ttd3_jax import spec as sp
+from ttd3_jax.control.closed_loop import energy_paper_map, test_tracks, to_paper_map
+from ttd3_jax.control.evaluator import Evaluator, Trace, controller_build, index, summarize
+from ttd3_jax.control.paper import PAPER, PAPER_TTD3
+from ttd3_jax.report import device_description, json_safe, plot_traces
+from ttd3_jax.runs import load_run
+from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim.config import PRESETS, EnvConfig, make_config
+from ttd3_jax.sim.env import TrackingEnv
 
 TRACKS = tr.TEST_TRACKS  # spiral_rt, los_rt
 ROWS = ("T-TD3", "TD3", "NMPC", "geometric")
@@ -60,7 +54,7 @@ PAPER_BOUND = 2.0  # max ‖a‖ for a ∈ [-1, 1]^4
 
 
 def train_command(algo: str, overrides: dict, out: str) -> str:
-    """The ``python -m ttd3_jax.train`` command equivalent to ``preset('fast', **overrides)``."""
+    """The ``python -m ttd3_jax.train`` command equivalent to ``spec.preset('fast', **overrides)``."""
     parts = ["python -m ttd3_jax.train --preset fast", f"--algo {algo}"]
     for k, v in overrides.items():
         flag = "--" + k.replace("_", "-")
@@ -70,13 +64,16 @@ def train_command(algo: str, overrides: dict, out: str) -> str:
 
 
 def train(algo: str, overrides: dict, runs_dir: str) -> tuple[str, float]:
-    from ttd3_jax.runner import run
-    from ttd3_jax.train import preset, with_algo
-
-    cfg = with_algo(preset("fast", **overrides), algo)
+    spec = sp.preset("fast", algo=algo, **overrides)
     t0 = time.perf_counter()
-    summary = run(cfg, out=runs_dir, verbose=True)
+    summary = runner.run(spec, out=runs_dir, verbose=True)
     return summary["run_dir"], time.perf_counter() - t0
+
+
+def env_preset_of(cfg: EnvConfig) -> str:
+    """The env preset ``cfg`` is (with its thrust centring), or ``"custom"``."""
+    same = (p for p in PRESETS if cfg == make_config(p, hover_centered_thrust=cfg.hover_centered_thrust))
+    return next(same, "custom")
 
 
 # --------------------------------------------------------------------------- evaluation
@@ -93,11 +90,11 @@ def evaluate_row(cfg: EnvConfig, build, theta, los_seeds: tuple, repeats: int, s
     m = dict(m, energy_paper_map=e_paper)
     out = {"tracks": {}, "traces": {}}
     for i, name in enumerate(TRACKS):
-        one = jax.tree.map(lambda x, i=i: x[i], batch)
+        one = index(batch, i)
         res = {k: float(np.asarray(v)[i]) for k, v in m.items()}
         res.update(ev.timing(theta, one, repeats))
         out["tracks"][name] = res
-        trace = Trace.from_rollout(jax.tree.map(lambda x, i=i: x[i], r), cfg.control_dt)
+        trace = Trace.from_rollout(index(r, i), cfg.control_dt)
         out["traces"][name] = dataclasses.replace(trace, action=to_paper_map(trace.action, cfg))
     rest = [0, *range(2, 2 + len(los_seeds))]
     stats = summarize({k: np.asarray(v)[rest] for k, v in m.items()}, los_seeds)["los_rt"]
@@ -110,7 +107,7 @@ def evaluate_row(cfg: EnvConfig, build, theta, los_seeds: tuple, repeats: int, s
         ev1 = Evaluator(TrackingEnv(cfg1.for_eval("los_rt")), build, sequential)
         b1 = test_tracks(ev1.env, (0,))
         for i, name in enumerate(TRACKS):
-            t1 = ev1.timing(theta, jax.tree.map(lambda x, i=i: x[i], b1), repeats)
+            t1 = ev1.timing(theta, index(b1, i), repeats)
             out["tracks"][name].update(loop_3000_s=t1["loop_s"], scan_3000_s=t1["scan_s"])
     else:
         for res in out["tracks"].values():
@@ -211,7 +208,7 @@ def agreement(res: dict, n_seeds: int, learned_info: dict, quick: bool) -> list[
     pm_ = PAPER["MPC"]
     for row in ("T-TD3", "TD3"):
         sp, los = g(row, "spiral_rt"), g(row, "los_rt")
-        beats = sp <= pt["spiral_rt"]["tracking_error"] and los <= pt["los_rt"]["tracking_error"]
+        beats = sp <= PAPER_TTD3["spiral_tracking_error"] and los <= PAPER_TTD3["los_tracking_error"]
         verdict = "matches or beats" if beats else "does **not** reach"
         L.append(
             f"- **{row} tracking:** Σ‖e‖ = {sp:.2f} (Spiral-RT) and {los:.2f} (LOS-RT seed 0) against the "
@@ -359,14 +356,15 @@ def main(argv=None) -> int:
     res, traces = {}, {}
     for row in ("T-TD3", "TD3"):
         run = load_run(run_dirs[row], None)
-        c = run.config
+        s, c = run.spec, run.spec.train
         if not 0 <= args.seed_index < len(run.thetas):
             ap.error(
                 f"--seed-index {args.seed_index} out of range for {run_dirs[row]} ({len(run.thetas)} seeds)"
             )
         seed, theta = run.thetas[args.seed_index]
         budget = (
-            f"{c.algo}, preset env {c.env_preset}, {c.total_transitions:,} transitions, {c.epochs} epochs, "
+            f"{c.algo}, preset env {env_preset_of(s.task)}, {c.total_transitions:,} transitions, "
+            f"{c.epochs} epochs, "
             f"hidden {c.hidden}, {c.num_envs} envs × {c.updates_per_step} updates/step, seed {seed}, "
             f"checkpoint epoch {run.epoch}"
         )
@@ -397,7 +395,7 @@ def main(argv=None) -> int:
     figs = plot_traces(traces, out, los_seed=0, prefix="paper_", action_note=" (paper's action map)")
     write_csv(os.path.join(out, "paper_tables.csv"), res, n_seeds)
     with open(os.path.join(out, "paper_tables.json"), "w") as fh:
-        json.dump(_json_safe({"device": device, "command": command, "training": training, "results": res,
+        json.dump(json_safe({"device": device, "command": command, "training": training, "results": res,
                               "paper": PAPER}), fh, indent=2, default=str)  # fmt: skip
     total_s = time.perf_counter() - t_start
     md = [

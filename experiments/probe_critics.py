@@ -25,12 +25,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttd3_jax import normalize as nrm
-from ttd3_jax.env import TrackingEnv, hover_action
-from ttd3_jax.evaluate import closed_loop, hover_controller, metrics
-from ttd3_jax.networks import twin_q
-from ttd3_jax.runner import load_train_state
-from ttd3_jax.train import QUADROTOR, policy_controller, quad_env_config
+from ttd3_jax.control.closed_loop import closed_loop, hover_controller, metrics, policy_controller
+from ttd3_jax.runs import load_train_state
+from ttd3_jax.sim.env import TrackingEnv, hover_action
+from ttd3_jax.td3 import normalize as nrm
+from ttd3_jax.td3.networks import twin_q
+from ttd3_jax.td3.trainer import act
 
 TRACKS = ("spiral_rt", "los_rt", "validation")
 
@@ -41,29 +41,31 @@ def probe(run_dir: str, epoch: int | None = None, seed_index: int = 0, track: st
     "max_dq": (max |ΔQ1|, max |ΔQ2|)}`` at the start state of ``track``, and the closed-loop
     ``"error_policy"`` / ``"error_hover"`` (Σ‖e‖, m) and ``"final_error_policy"`` /
     ``"final_error_hover"`` (m) from there (host floats)."""
-    c, trainer, state = load_train_state(run_dir, epoch)
-    if c.env != QUADROTOR:
-        raise ValueError(f"{run_dir!r} is a {c.env!r} run; the probe reads quadrotor runs")
-    if not 0 <= seed_index < c.num_seeds:
-        raise ValueError(f"seed_index must be in [0, {c.num_seeds}), got {seed_index}")
-    cfg = quad_env_config(c)
+    loaded = load_train_state(run_dir, epoch)
+    spec, trainer = loaded.spec, loaded.trainer
+    if not spec.is_quadrotor:
+        raise ValueError(f"{run_dir!r} is a {spec.env!r} run; the probe reads quadrotor runs")
+    if not 0 <= seed_index < spec.num_seeds:
+        raise ValueError(f"seed_index must be in [0, {spec.num_seeds}), got {seed_index}")
+    cfg = spec.task
     env = TrackingEnv(cfg.for_eval(track))
     s0 = env.reset(jax.random.PRNGKey(0))
-    st = jax.tree.map(lambda x: x[seed_index], state)
-    stats = st.obs_stats if c.normalize_obs else None
+    st = jax.tree.map(lambda x: x[seed_index], loaded.state)
+    stats = st.obs_stats if spec.train.normalize_obs else None
     obs = nrm.apply(stats, s0.obs)
     nets = trainer.nets
     a_pi = nets.actor.apply(st.actor, obs)
     a_hover = hover_action(cfg).astype(a_pi.dtype)
 
     def q(a):
-        return twin_q(nets, st.critic, obs, a, base=a_pi)
+        return twin_q(nets, st.critic, obs, a)
 
     steps = jnp.concatenate([delta * jnp.eye(4), -delta * jnp.eye(4)])
     moved = jnp.clip(a_pi[None] + steps, -1.0, 1.0)
     dq = jnp.abs(jax.vmap(q)(moved) - q(a_pi)[None])  # (8, 2)
     out = dict(policy=a_pi, hover=a_hover, q_policy=q(a_pi), q_hover=q(a_hover), max_dq=dq.max(0))
-    controllers = {"policy": policy_controller(nets, st.actor, stats), "hover": hover_controller(cfg)}
+    policy = policy_controller(lambda o: act(trainer.setup, st.actor, stats, o))
+    controllers = {"policy": policy, "hover": hover_controller(cfg)}
     for name, ctrl in controllers.items():
         r = jax.jit(lambda s, ctrl=ctrl: closed_loop(env, ctrl, s))(s0)
         out[f"error_{name}"] = metrics(env, r)["tracking_error"]

@@ -1,13 +1,15 @@
 """Single-seed variants of the ``fast_dpg`` preset (the paper's actor update; it was the ``fast``
 preset until 2026-12-01), as explored while tuning it (docs/results.md).
 
-Each variant is the ``fast_dpg`` preset plus a few overrides of the env config (as
-``TrainConfig.env_overrides``, so the run directory records them and
-``python -m ttd3_jax.evaluate RUN_DIR`` and ``--resume`` rebuild the same env), the
-``TrainConfig`` or ``Hyper``.  The script trains each variant, then prints the median Spiral-RT
-and LOS-RT tracking error over the last five evaluations (evaluations are noisy from
-epoch to epoch), the best single evaluation (an optimistic figure: chosen on the test
-tracks) and the policy selected on the validation tracks (the honest one).
+Each variant is the ``fast_dpg`` run spec with a few fields changed: of the env (the spec's
+``task``, an :class:`~ttd3_jax.sim.config.EnvConfig`), of the ``TrainConfig`` or of the
+``Hyper``.  The run directory's ``config.json`` records the whole spec, so
+``python -m ttd3_jax.evaluate RUN_DIR`` and ``--resume`` rebuild the same env.  The script
+trains each variant, then prints the median Spiral-RT and LOS-RT tracking error over the
+last five evaluations (evaluations are noisy from epoch to epoch), the best single
+evaluation (an optimistic figure: chosen on the test tracks) and the policy selected on the
+validation tracks (the honest one).  (Variants of options that no longer exist are in git
+history.)
 
     python experiments/tune_fast.py --list
     python experiments/tune_fast.py --variant fast_dpg --variant world_frame
@@ -19,11 +21,12 @@ import argparse
 import dataclasses
 import statistics
 
-from ttd3_jax import train as T
-from ttd3_jax.runner import read_metrics, run
-from ttd3_jax.trajectories import TrackConfig
+from ttd3_jax import spec as sp
+from ttd3_jax.runner import run
+from ttd3_jax.runs import read_metrics
+from ttd3_jax.sim.trajectories import TrackConfig
 
-# name: (env overrides, TrainConfig overrides, Hyper overrides)
+# name: (EnvConfig changes, TrainConfig changes, Hyper changes)
 VARIANTS = {
     "fast_dpg": ({}, {}, {}),
     "world_frame": ({"obs_frame": "world"}, {}, {}),
@@ -32,11 +35,9 @@ VARIANTS = {
     "no_wind": ({"wind_sigma": 0.0}, {}, {}),
     "target_noise_small": ({}, {}, {"target_sigma": 0.05, "target_clip": 0.05}),
     "reward_scale_0.1": ({}, {}, {"reward_scale": 0.1}),
-    "velocity_cost": ({"rho_vel": 0.3}, {}, {}),
     "yaw_effort_10": ({"effort_weights": (1.0, 1.0, 1.0, 10.0)}, {}, {}),
     "td3_sigma_0.05": ({}, {"algo": "td3"}, {"sigma": 0.05}),
     "ttd3_lambda_0.001": ({}, {}, {"lam": 0.001}),
-    "caps": ({}, {}, {"lam": 0.001, "smooth_time": 0.5, "smooth_space": 0.5}),
     "actor_lr_1e-3_delay_1": ({}, {"policy_delay": 1}, {"lr_actor": 1e-3}),
     "gamma_0.995": ({}, {}, {"gamma": 0.995}),
     "hidden_128": ({}, {"hidden": (128, 128)}, {}),
@@ -45,74 +46,25 @@ VARIANTS = {
         {"batch_size": 1024, "updates_per_step": 8},
         {"lr_actor": 1e-3, "lr_critic": 1e-3},
     ),  # fmt: skip
-    "slow_tracks": ({"tracks": TrackConfig(train_scale=(0.05, 1.0))}, {}, {}),
-    "slow_tracks_small_init": (
-        {
-            "tracks": TrackConfig(train_scale=(0.05, 1.0)),
-            "init_pos": 0.03,
-            "init_vel": 0.05,
-            "init_tilt_deg": 3.0,
-            "init_yaw_deg": 5.0,
-        },
-        {},
-        {},
-    ),  # fmt: skip
-    "cubic_rates": ({"rate_map": "cubic"}, {}, {}),
-    "cubic_rates_0.25": ({"rate_map": "cubic", "rate_map_slope": 0.25}, {}, {}),
-    "heading_frame": ({"obs_frame": "heading"}, {}, {}),
-    "error_frame": ({"obs_frame": "error"}, {}, {}),
-    "advantage_critic": ({}, {"critic": "advantage"}, {}),
-    "advantage_critic_lambda_0.001": ({}, {"critic": "advantage"}, {"lam": 0.001}),
-    "advantage_critic_error_frame": ({"obs_frame": "error"}, {"critic": "advantage"}, {}),
     "no_dynamics_tracks": ({"tracks": TrackConfig(train_mix=(0.0, 0.5, 0.5))}, {}, {}),
-    "no_dynamics_tracks_adv_lambda_0.001": (
-        {"tracks": TrackConfig(train_mix=(0.0, 0.5, 0.5))},
-        {"critic": "advantage"},
-        {"lam": 0.001},
-    ),  # fmt: skip
-    "hover_only": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4))}, {}, {}),  # a diagnostic
-    "hover_only_td3_sigma_0.1": (
-        {"tracks": TrackConfig(train_scale=(1e-4, 1e-4))},
-        {"algo": "td3"},
-        {"sigma": 0.1},
-    ),  # fmt: skip
-    "hover_only_repeat_50": (
-        {"tracks": TrackConfig(train_scale=(1e-4, 1e-4)), "action_repeat": 50, "crash_penalty": 5000.0},
-        {},
-        {},
-    ),  # fmt: skip
-    "hover_only_gamma_0.95": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4))}, {}, {"gamma": 0.95}),
-    "hover_only_effort_10x": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4)), "rho2": 0.1}, {}, {}),
-    "hover_only_no_wind": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4)), "wind_sigma": 0.0}, {}, {}),
-    "hover_only_nstep_5": ({"tracks": TrackConfig(train_scale=(1e-4, 1e-4))}, {"n_step": 5}, {}),
-    "nstep_5": ({}, {"n_step": 5}, {}),
-    "nstep_10": ({}, {"n_step": 10}, {}),
-    "critic_layer_norm": ({}, {"critic_layer_norm": True}, {}),
     "actor_lr_5e-5": ({}, {}, {"lr_actor": 5e-5}),
     "tau_0.001": ({}, {}, {"tau": 0.001}),
     "repeat_20": ({"action_repeat": 20, "crash_penalty": 2000.0}, {}, {}),
     "repeat_20_gamma_0.98": ({"action_repeat": 20, "crash_penalty": 1000.0}, {}, {"gamma": 0.98}),
     "small_init": ({"init_pos": 0.01, "init_vel": 0.02, "init_tilt_deg": 1.0}, {}, {}),
-    "precision_bonus": ({"precision_bonus": 0.1, "precision_scale": 0.02}, {}, {}),
     "utd_1": ({}, {"num_envs": 16, "total_transitions": 300_000, "buffer_size": 300_000}, {}),
-    "lr_linear_900k": (
-        {},
-        {"total_transitions": 900_000, "buffer_size": 900_000, "epochs": 30, "lr_schedule": "linear"},
-        {},
-    ),  # fmt: skip
 }
 
 
-def config_for(name: str) -> T.TrainConfig:
-    env_o, cfg_o, hp_o = VARIANTS[name]
-    overrides = tuple(T.env_override(k, v) for k, v in env_o.items())
-    c = T.preset("fast_dpg", env_overrides=overrides, **cfg_o)
-    c = dataclasses.replace(c, hp=dataclasses.replace(c.hp, **hp_o))
-    return T.with_algo(c, c.algo)
+def spec_for(name: str) -> sp.RunSpec:
+    """The run spec of variant ``name``: ``fast_dpg`` with the variant's changes."""
+    task_o, train_o, hp_o = VARIANTS[name]
+    s = sp.preset("fast_dpg")
+    return sp.replace(s, task=dataclasses.replace(s.task, **task_o), hp=s.hp.replace(**hp_o), **train_o)
 
 
 def run_variant(name: str, out: str) -> dict:
-    summary = run(config_for(name), out=f"{out}/{name}")
+    summary = run(spec_for(name), out=f"{out}/{name}")
     rows = read_metrics(summary["run_dir"])
     sp = [float(r["spiral_tracking_error"]) for r in rows]
     los = [float(r["los_tracking_error"]) for r in rows]
@@ -137,7 +89,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.list:
         for name, (e, c, h) in VARIANTS.items():
-            print(f"{name:<24} env={e} cfg={c} hp={h}")
+            print(f"{name:<24} task={e} train={c} hp={h}")
         return 0
     names = args.variant or list(VARIANTS)
     bad = [n for n in names if n not in VARIANTS]

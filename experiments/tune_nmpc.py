@@ -1,6 +1,6 @@
 """NMPC tuning (spec §2.6): weight scale {¼, 1, 4} × horizon N ∈ {10, 20, 40}.
 
-Judged on the 10 validation tracks only (``trajectories.validation_tracks``, drawn
+Judged on the 10 validation tracks only (``sim.trajectories.validation_tracks``, drawn
 from the training mixture); the test tracks Spiral-RT and LOS-RT are never run
 here.  Every setting runs the full 3000-step evaluation protocol (``paper`` preset,
 start on p_d(0) at rest and level, no wind) on all validation tracks in one
@@ -25,10 +25,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttd3_jax import trajectories as tr
-from ttd3_jax.env import PRESETS, TrackingEnv, make_config
-from ttd3_jax.evaluate import evaluate_on_tracks
-from ttd3_jax.nmpc import NMPCConfig, nmpc_controller
+from ttd3_jax.control.closed_loop import evaluate_on_tracks
+from ttd3_jax.control.nmpc import NMPCConfig, nmpc_controller
+from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim.config import PRESETS, make_config
+from ttd3_jax.sim.env import TrackingEnv
 
 
 def run_setting(env: TrackingEnv, tracks: tr.Track, cfg: NMPCConfig) -> tuple[dict, float, float]:

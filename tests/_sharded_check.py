@@ -15,11 +15,14 @@ import numpy as np
 from jax.sharding import PartitionSpec as P
 
 sys.path.insert(0, os.path.dirname(__file__))
-from test_train import tiny  # noqa: E402
+from tiny import tiny  # noqa: E402
 
-from ttd3_jax.runner import per_seed, read_metrics, run  # noqa: E402
+from ttd3_jax import spec as sp  # noqa: E402
+from ttd3_jax.runner import run  # noqa: E402
+from ttd3_jax.runs import read_metrics  # noqa: E402
 from ttd3_jax.sharding import ENV, SWEEP, make_mesh, runner_fns, seed_env_mesh, shard_vmapped  # noqa: E402
-from ttd3_jax.train import Hyper, make_trainer, seed_keys  # noqa: E402
+from ttd3_jax.td3.config import Hyper  # noqa: E402
+from ttd3_jax.td3.trainer import seed_keys  # noqa: E402
 
 assert jax.device_count() == 4, jax.devices()
 T0 = time.perf_counter()
@@ -53,13 +56,13 @@ ok("meshes")
 # 1. a seeds x beta sweep of the fused train (2 epochs of 32 vector steps), as one program
 # over 4 devices
 c = tiny(epochs=2, total_transitions=16 * 72)
-assert c.steps_per_epoch == 32
-t = make_trainer(c)
+assert c.train.steps_per_epoch == 32
+t = sp.trainer_for(c)
 none = {f.name: None for f in dataclasses.fields(Hyper)}
 axes = Hyper(**{**none, "beta": 0})
-two = seed_keys(dataclasses.replace(c, num_seeds=2))
+two = seed_keys(0, 2)
 keys = jnp.concatenate([two, two])
-hps = dataclasses.replace(c.hp, beta=jnp.array([c.hp.beta, c.hp.beta, 0.3, 0.3]))
+hps = c.hp.replace(beta=jnp.array([c.hp.beta, c.hp.beta, 0.3, 0.3]))
 plain = jax.jit(jax.vmap(t.train, in_axes=(0, axes)))(keys, hps)
 sharded_fn = shard_vmapped(t.train, (0, axes), pad=True)
 sharded = sharded_fn(keys, hps)
@@ -72,7 +75,7 @@ assert not np.allclose(err[0], err[2]), err  # beta mattered
 ok("sweep of 4 on 4 devices equals jit(vmap)")
 
 # padding: 3 entries on 4 devices (padded to 4: the program above runs again)
-three = (keys[:3], dataclasses.replace(hps, beta=hps.beta[:3]))
+three = (keys[:3], hps.replace(beta=hps.beta[:3]))
 try:
     shard_vmapped(t.train, (0, axes))(*three)
     raise AssertionError("expected ValueError")
@@ -86,10 +89,9 @@ ok("padding and divisibility error")
 # 2. runner.run with 2 seeds x 16 envs: a 2 x 2 (sweep, env) mesh; interrupted after its
 # first epoch and resumed from the sharded checkpoint; both epochs equal the unsharded
 # fused train of seeds 0 and 1 above
-c2 = dataclasses.replace(c, num_seeds=2)
-t2 = make_trainer(c2)
-init_s, epoch_s, eval_s, place = runner_fns(t2, c2, per_seed)
-ts = init_s(seed_keys(c2), c2.hp)  # compiled here, found in the cache by run() below
+c2 = sp.replace(c, num_seeds=2)
+init_s, epoch_s, eval_s, place = runner_fns(sp.trainer_for(c2), two, c2.hp)
+ts = init_s(two, c2.hp)  # compiled here, found in the cache by run() below
 obs = ts.env_state.obs
 assert obs.sharding.spec[:2] == (SWEEP, ENV) and devices_of(obs) == 4, obs.sharding
 assert ts.ep_return.sharding.spec == P(SWEEP, ENV), ts.ep_return.sharding

@@ -1,6 +1,7 @@
-"""Classical controllers and the evaluation metrics (``ttd3_jax.geometric``, ``ttd3_jax.evaluate``):
-the geometric controller holds hover and tracks a slow circle-like spiral, and
-:func:`ttd3_jax.evaluate.metrics` matches a hand-computed :class:`Rollout`.
+"""Classical controllers and the evaluation metrics (``ttd3_jax.control.geometric``,
+``ttd3_jax.control.closed_loop``): the geometric controller holds hover and tracks a slow
+circle-like spiral, and :func:`ttd3_jax.control.closed_loop.metrics` matches a hand-computed
+:class:`Rollout`.
 """
 
 from __future__ import annotations
@@ -12,9 +13,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttd3_jax import trajectories as tr
-from ttd3_jax.env import TrackingEnv, make_config
-from ttd3_jax.evaluate import Rollout, closed_loop, geometric_controller, metrics
+from ttd3_jax.control.closed_loop import Rollout, closed_loop, metrics
+from ttd3_jax.control.geometric import geometric_controller
+from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim.config import make_config
+from ttd3_jax.sim.env import TrackingEnv
 
 
 def eval_env(episode_steps: int = 2000, **kw) -> TrackingEnv:

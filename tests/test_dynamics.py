@@ -1,4 +1,4 @@
-"""Physics tests for :mod:`ttd3_jax.dynamics` (spec §2.1, rows D1-D7).
+"""Physics tests for :mod:`ttd3_jax.sim.dynamics` (spec §2.1, rows D1-D7).
 
 Conventions under test: world z up with gravity subtracted, Hamilton quaternions
 stored scalar first and mapping body -> world, body rates in the body frame
@@ -26,8 +26,8 @@ import numpy as np
 import pytest
 from jax.extend.core import Primitive
 
-from ttd3_jax import dynamics as dyn
-from ttd3_jax.dynamics import QuadParams, QuadState
+from ttd3_jax.sim import dynamics as dyn
+from ttd3_jax.sim.dynamics import QuadParams, QuadState
 
 G = 9.81
 EZ = np.array([0.0, 0.0, 1.0])

@@ -1,56 +1,59 @@
-"""Evaluation of saved runs, run-time figures and robustness (``ttd3_jax.evaluate``), and the
-env's robustness options (``action_delay``, ``thrust_map_mass``)."""
+"""Evaluation of saved runs, run-time figures and robustness (``ttd3_jax.evaluate``,
+``ttd3_jax.control``), and the env's robustness options (``action_delay``,
+``thrust_map_mass``)."""
 
 from __future__ import annotations
 
+import dataclasses
+import importlib.util
 import json
 import math
 import os
+import re
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from tiny import tiny
 
 from ttd3_jax import checkpoint as ckpt
-from ttd3_jax import normalize as nrm
-from ttd3_jax.env import EnvConfig, TrackingEnv, hover_action, make_config, yaw_of
-from ttd3_jax.evaluate import TRACE_COLUMNS, closed_loop, controller_build, hover_controller, main
-from ttd3_jax.evaluate import test_tracks as make_test_tracks
-from ttd3_jax.networks import init_params, twin_q
-from ttd3_jax.robustness import ROBUSTNESS_CONDITIONS, evaluate_robustness, robustness_conditions
-from ttd3_jax.runner import config_to_dict, env_config_dict, load_train_state, per_seed, run
-from ttd3_jax.train import make_trainer, preset, quad_env_config, seed_keys
-
-TINY = dict(
-    num_envs=16,
-    total_transitions=640,
-    warmup_transitions=128,
-    buffer_size=1024,
-    batch_size=64,
-    updates_per_step=2,
-    epochs=2,
-    hidden=(32, 32),
-)
+from ttd3_jax import runs
+from ttd3_jax import spec as sp
+from ttd3_jax.control.closed_loop import closed_loop, evaluate_on_tracks, hover_controller, sensed_controller
+from ttd3_jax.control.closed_loop import test_tracks as make_test_tracks
+from ttd3_jax.control.evaluator import controller_build
+from ttd3_jax.control.geometric import geometric_controller
+from ttd3_jax.control.robustness import ROBUSTNESS_CONDITIONS, evaluate_robustness, robustness_conditions
+from ttd3_jax.evaluate import main
+from ttd3_jax.report import TRACE_COLUMNS
+from ttd3_jax.runner import run
+from ttd3_jax.sharding import per_seed
+from ttd3_jax.sim.config import EnvConfig, make_config
+from ttd3_jax.sim.env import TrackingEnv, hover_action, yaw_of
+from ttd3_jax.td3 import normalize as nrm
+from ttd3_jax.td3.networks import init_params, twin_q
+from ttd3_jax.td3.trainer import seed_keys
 
 
 def fake_run_dir(path) -> str:
-    """A run directory as the runner writes it (config.json with an env override,
-    env_config.json, an orbax checkpoint of the whole train state at epoch 2), without the
-    ~40 s of compiling a real run: the state is zeros except for freshly initialised actor
-    and critic weights (``init_params`` with key 3)."""
-    c = preset("fast_dpg", env_overrides=("obs_frame=heading",), **TINY)
-    trainer = make_trainer(c)
-    like = jax.eval_shape(per_seed(trainer.init, c, (0, None)), seed_keys(c), c.hp)
+    """A run directory as the runner writes it (config.json with a change to the preset's
+    env config, an orbax checkpoint of the whole train state at epoch 2), without the ~40 s
+    of compiling a real run: the state is zeros except for freshly initialised actor and
+    critic weights (``init_params`` with key 3)."""
+    base = tiny()
+    s = sp.replace(base, task=dataclasses.replace(base.task, obs_frame="world"))
+    trainer = sp.trainer_for(s)
+    like = jax.eval_shape(
+        per_seed(trainer.init, s.num_seeds, (0, None)), seed_keys(s.seed, s.num_seeds), s.hp
+    )
     state = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), like)
-    actor, critic = init_params(trainer.nets, jax.random.PRNGKey(3), trainer.spec.obs_size, 4)
+    actor, critic = init_params(trainer.nets, jax.random.PRNGKey(3), trainer.env.obs_size, 4)
     lead = lambda tree: jax.tree.map(lambda x: x[None], tree)  # noqa: E731  (the seed axis)
     state = state.replace(actor=lead(actor), critic=lead(critic))
     os.makedirs(path)
     with open(os.path.join(path, "config.json"), "w") as fh:
-        json.dump(config_to_dict(c), fh)
-    with open(os.path.join(path, "env_config.json"), "w") as fh:
-        json.dump(env_config_dict(c), fh)
+        json.dump(sp.to_dict(s), fh)
     ckpt.save(ckpt.manager(str(path)), 2, state)
     return str(path)
 
@@ -58,9 +61,12 @@ def fake_run_dir(path) -> str:
 def check_evaluation_json(run_dir: str, epoch: int, obs_frame: str = "track") -> dict:
     with open(os.path.join(run_dir, "evaluation.json")) as fh:
         out = json.load(fh)
-    assert out["epoch"] == epoch and out["env_preset"] == "practical"
-    assert out["env_config"]["action_repeat"] == 10  # the run's env config, not the paper preset
-    assert out["env_config"]["obs_frame"] == obs_frame  # with the run's env overrides
+    with open(os.path.join(run_dir, "config.json")) as fh:
+        task = json.load(fh)["task"]
+    assert out["epoch"] == epoch
+    assert out["env_config"] == task  # the run's whole env config (the practical preset's) ...
+    assert out["env_config"]["action_repeat"] == 10  # ... not the paper preset
+    assert out["env_config"]["obs_frame"] == obs_frame  # with the run's changes to the preset
     res = out["results"]["seed 0"]
     assert set(res) == {"spiral_rt", "los_rt"}
     for m in res.values():
@@ -77,6 +83,12 @@ def check_evaluation_json(run_dir: str, epoch: int, obs_frame: str = "track") ->
     return out
 
 
+def flat(text: str) -> str:
+    """``text`` with the frames of tyro's error boxes removed and its lines joined (so that a
+    message wrapped at the terminal width reads as one line)."""
+    return " ".join(re.sub("[│╭╮╰╯─]", " ", text).split())
+
+
 def read_trace(path: str) -> np.ndarray:
     rows = np.genfromtxt(path, delimiter=",", names=True, dtype=None, encoding="utf-8")
     assert ",".join(rows.dtype.names) == TRACE_COLUMNS
@@ -88,18 +100,19 @@ def test_cli_evaluates_a_saved_checkpoint(tmp_path, capsys):
     assert main([run_dir, "--repeats", "1"]) == 0
     text = capsys.readouterr().out
     assert "epoch 2" in text and "seed 0" in text and "loop s" in text
-    check_evaluation_json(run_dir, 2, obs_frame="heading")
+    check_evaluation_json(run_dir, 2, obs_frame="world")
     # flags that do not apply to a run directory are refused
     with pytest.raises(SystemExit):
         main([run_dir, "--controller", "nmpc"])
     with pytest.raises(SystemExit):
-        main([run_dir, "--env-overrides", "e_max=1"])  # a run keeps the env it trained in
-    for bad in ("wind_sigma=1", "track=los_rt", "action_repeat=0", "mass=2"):
+        main([run_dir, "--task.e-max", "1"])  # a run keeps the env it trained in
+    for bad in (["--task.wind-sigma", "1"], ["--task.track", "los_rt"], ["--task.action-repeat", "0"],
+                ["--task.mass", "2"]):  # fmt: skip
         with pytest.raises(SystemExit):
-            main(["--controller", "hover", "--env-overrides", bad])
-    err = capsys.readouterr().err
-    assert "set by the evaluation protocol" in err and "action_repeat must be > 0" in err
-    assert "unknown env config field 'mass'" in err
+            main(["--controller", "hover", *bad])
+    err = flat(capsys.readouterr().err)
+    assert "set by the evaluation protocol" in err and "action_repeat must be an integer >= 1" in err
+    assert "Unrecognized options: --task.mass" in err
     assert main([run_dir, "--seed-index", "3"]) == 2
     assert main([str(tmp_path / "missing")]) == 2
 
@@ -109,10 +122,10 @@ def test_cli_trace_csv_holds_the_rollout_behind_the_metrics(tmp_path):
     per physics step, whose errors are the positions' distances and sum to Σ‖e‖."""
     out = tmp_path / "geometric.json"
     args = ["--controller", "geometric", "--track", "spiral_rt", "--no-timing", "--json", str(out)]
-    assert main([*args, "--env-overrides", 'quad={"mass": 1.8}']) == 0  # a heavier vehicle
+    assert main([*args, "--task.quad.mass", "1.8"]) == 0  # a heavier vehicle
     with open(out) as fh:
         saved = json.load(fh)
-    assert saved["env_config"]["quad"]["mass"] == 1.8 and saved["env_overrides"] == ['quad={"mass": 1.8}']
+    assert saved["env_config"]["quad"]["mass"] == 1.8 and saved["task_args"] == ["--task.quad.mass", "1.8"]
     res = saved["results"]["geometric"]["spiral_rt"]
     rows = read_trace(str(tmp_path / "spiral_rt_trace.csv"))
     assert not (tmp_path / "los_rt_trace.csv").exists()
@@ -132,9 +145,17 @@ def test_cli_trace_csv_holds_the_rollout_behind_the_metrics(tmp_path):
     np.testing.assert_allclose(rows["yaw_rad"], yaw_of(jnp.asarray(quat.T)), atol=1e-6)
 
 
-def test_probe_critics_reads_a_run_and_matches_a_direct_critic_call(tmp_path, capsys):
-    import importlib.util
+def test_cli_refuses_the_episode_length_as_a_protocol_field(capsys):
+    """The evaluation protocol fixes the episode (3 s); --task.episode-steps may not shorten it."""
+    with pytest.raises(SystemExit) as exc:
+        main(["--controller", "geometric", "--task.episode-steps", "10"])
+    assert exc.value.code == 2
+    err = flat(capsys.readouterr().err)
+    assert "--task.episode-steps is set by the evaluation protocol" in err
+    assert "Traceback" not in err
 
+
+def test_probe_critics_reads_a_run_and_matches_a_direct_critic_call(tmp_path, capsys):
     path = os.path.join(os.path.dirname(__file__), "..", "experiments", "probe_critics.py")
     spec = importlib.util.spec_from_file_location("probe_critics", path)
     pc = importlib.util.module_from_spec(spec)
@@ -143,10 +164,13 @@ def test_probe_critics_reads_a_run_and_matches_a_direct_critic_call(tmp_path, ca
     r = pc.probe(run_dir)
     # oracle: the same critics called directly on the start state (the fake run's obs stats
     # are zeros, so the normaliser maps every observation to the clip bounds or 0)
-    c, trainer, state = load_train_state(run_dir)
-    _, critic = init_params(trainer.nets, jax.random.PRNGKey(3), trainer.spec.obs_size, 4)
-    env = TrackingEnv(quad_env_config(c).for_eval("spiral_rt"))
-    obs = nrm.apply(jax.tree.map(lambda x: x[0], state.obs_stats), env.reset(jax.random.PRNGKey(0)).obs)
+    loaded = runs.load_train_state(run_dir)
+    trainer = loaded.trainer
+    _, critic = init_params(trainer.nets, jax.random.PRNGKey(3), trainer.env.obs_size, 4)
+    env = TrackingEnv(loaded.spec.task.for_eval("spiral_rt"))
+    obs = nrm.apply(
+        jax.tree.map(lambda x: x[0], loaded.state.obs_stats), env.reset(jax.random.PRNGKey(0)).obs
+    )
     hover = hover_action(env.config)
     np.testing.assert_allclose(r["q_hover"], twin_q(trainer.nets, critic, obs, hover), rtol=1e-6)
     np.testing.assert_allclose(r["hover"], hover, atol=1e-7)
@@ -163,7 +187,7 @@ def test_probe_critics_reads_a_run_and_matches_a_direct_critic_call(tmp_path, ca
 
 @pytest.mark.slow
 def test_cli_evaluates_a_real_tiny_run(tmp_path):
-    summary = run(preset("fast_dpg", **TINY), out=str(tmp_path), verbose=False)
+    summary = run(tiny(), out=str(tmp_path), verbose=False)
     assert main([summary["run_dir"], "--repeats", "1"]) == 0
     check_evaluation_json(summary["run_dir"], 2)
 
@@ -217,6 +241,20 @@ def test_mass_mismatch_is_unknown_to_the_controller():
     # the heavier quad sinks with a = g(1/1.2 - 1), the lighter one climbs with g(1/0.8 - 1)
     assert dz["mass+20"] == pytest.approx(-0.5 * 9.81 / 6 * t**2, rel=0.05)
     assert dz["mass-20"] == pytest.approx(0.5 * 9.81 / 4 * t**2, rel=0.05)
+
+
+def test_sensed_controller_on_the_track_frame_equals_the_true_state_controller():
+    """Without noise the observation holds the true state: fed from a track-frame
+    observation (positions shifted back by p_d,k, q possibly negated), the geometric
+    controller flies the same closed loop as on the true state."""
+    env = TrackingEnv(make_config("practical").for_eval("los_rt"))
+    assert env.config.obs_frame == "track"
+    geo = geometric_controller(env.config)
+    tracks = make_test_tracks(env)
+    run_ = jax.jit(lambda c: evaluate_on_tracks(env, c, tracks)["tracking_error"], static_argnums=0)
+    plain, sensed = run_(geo), run_(sensed_controller(geo, env.config))
+    assert np.all(np.isfinite(plain))
+    np.testing.assert_allclose(sensed, plain, rtol=1e-5)
 
 
 # --------------------------------------------------------------------------- robustness

@@ -13,7 +13,7 @@ import os
 import numpy as np
 import pytest
 
-from ttd3_jax.runner import config_to_dict
+from ttd3_jax import spec as sp
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 spec = importlib.util.spec_from_file_location(
@@ -26,10 +26,12 @@ spec.loader.exec_module(mc)
 def test_task_config_is_the_mujoco_preset_resized():
     a = mc.parse(["--steps", "40000", "--warmup", "5000", "--eval-every", "2500", "--tasks", "hopper"])
     c = mc.task_config("hopper", "td3", a)
-    assert (c.env, c.algo, c.num_envs, c.updates_per_step, c.num_seeds) == ("hopper", "td3", 1, 1, 3)
-    assert c.epochs == 14 and c.steps_per_epoch == 2500 and c.warmup_transitions == 5000
+    tc = c.train
+    assert (c.env, c.algo, tc.num_envs, tc.updates_per_step, c.num_seeds) == ("hopper", "td3", 1, 1, 3)
+    assert tc.epochs == 14 and tc.steps_per_epoch == 2500 and tc.warmup_transitions == 5000
+    assert (c.brax.backend, c.brax.eval_episodes) == ("mjx", 10)
     t = mc.task_config("hopper", "ttd3", a)
-    assert t.algo == "ttd3" and t.hp == c.hp and t.hidden == c.hidden == (256, 256)
+    assert t.algo == "ttd3" and t.hp == c.hp and t.train.hidden == tc.hidden == (256, 256)
 
 
 @pytest.mark.parametrize(
@@ -79,13 +81,13 @@ def fake_run(out, task, algo, argv):
     d = os.path.join(out, "runs", f"{task}-{algo}", f"{task}-{algo}-s0-20261201-000000")
     os.makedirs(d)
     with open(os.path.join(d, "config.json"), "w") as fh:
-        json.dump(config_to_dict(c), fh)
+        json.dump(sp.to_dict(c), fh)
     with open(os.path.join(d, "metrics.csv"), "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["epoch", "seed", "env_steps", "eval_return"])
-        for e in range(1, c.epochs + 1):
+        for e in range(1, c.train.epochs + 1):
             for s in range(c.num_seeds):
-                w.writerow([e, s, c.warmup_transitions + e * a.eval_every, 10.0 * e + s])
+                w.writerow([e, s, c.train.warmup_transitions + e * a.eval_every, 10.0 * e + s])
     with open(os.path.join(d, "eval.json"), "w") as fh:
         json.dump({}, fh)
     return a
@@ -113,3 +115,14 @@ def test_readme_states_each_runs_budget_and_flags_reduced_runs(tmp_path):
     assert os.path.getsize(os.path.join(out, "curves.png")) > 10_000
     with open(os.path.join(out, "evals.csv")) as fh:
         assert len(list(csv.DictReader(fh))) == 2 * 3 * (14 + 2)  # algos x seeds x evaluations
+
+
+def test_committed_runs_load_with_their_budgets():
+    """results/mujoco/runs/*/*/config.json are run specs (ttd3_jax.spec.to_dict) that load."""
+    out = os.path.join(HERE, "..", "results", "mujoco")
+    b = {(r["task"], r["algo"]): r for r in mc.budgets(out)}
+    assert len(b) == 8 and all(r["finished"] and not r["protocol"] for r in b.values())
+    assert b["hopper", "ttd3"]["steps"] == 40000 and b["ant", "td3"]["steps"] == 15000
+    assert {(r["seeds"], r["eval_every"], r["eval_episodes"], r["backend"]) for r in b.values()} == {
+        (3, 2500, 10, "mjx")
+    }

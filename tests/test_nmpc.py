@@ -1,4 +1,4 @@
-"""NMPC baseline (``ttd3_jax.nmpc``, spec §2.6): closed-loop hover and line tracking on a
+"""NMPC baseline (``ttd3_jax.control.nmpc``, spec §2.6): closed-loop hover and line tracking on a
 tiny horizon, one Gauss-Newton step lowers the cost, warm-start shift, config checks.
 
 Everything runs on CPU with N = 5 nodes so that each test compiles in a few seconds.
@@ -13,11 +13,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttd3_jax import trajectories as tr
-from ttd3_jax.dynamics import QuadState, body_z
-from ttd3_jax.env import TrackingEnv, action_to_control, make_config
-from ttd3_jax.evaluate import CONTROLLERS, Controller, closed_loop, make_controller, metrics
-from ttd3_jax.nmpc import NMPC, NMPCConfig, nmpc_controller, tilt_quaternion
+from ttd3_jax.control.closed_loop import Controller, closed_loop, metrics
+from ttd3_jax.control.evaluator import CONTROLLERS, make_controller
+from ttd3_jax.control.nmpc import NMPC, NMPCConfig, nmpc_controller, tilt_quaternion
+from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim.config import make_config
+from ttd3_jax.sim.dynamics import QuadState, body_z
+from ttd3_jax.sim.env import TrackingEnv, action_to_control
 
 # 5 nodes 0.1 s apart: a 0.5 s horizon (the default is 20 × 0.05 s)
 SMALL = NMPCConfig(horizon=5, dt_node=0.1, sqp_iters_first=10, fista_iters=50)

@@ -1,4 +1,4 @@
-"""ttd3_jax.rng draws exactly what jax.random draws, so swapping it in changed no result."""
+"""ttd3_jax.sim.rng draws exactly what jax.random draws, so swapping it in changed no result."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttd3_jax import rng
+from ttd3_jax.sim import rng
 
 
 def _keys(n=257):
@@ -69,15 +69,16 @@ def test_draws_inside_a_scan_have_no_while_loop_on_cpu():
 
 def test_env_wind_is_unchanged_by_the_fused_draws(monkeypatch):
     """The paper env's OU wind (with observation noise on as well), stepped with
-    ttd3_jax.rng and with jax.random: identical observations, rewards and wind.
+    ttd3_jax.sim.rng and with jax.random: identical observations, rewards and wind.
 
     Not a given: the draws are identical, but XLA fuses them with the arithmetic around
     them, which can change the last bit.  It did for the observation noise (31 of 6800
     entries off by one ulp), which is why that noise stays on jax.random."""
     import types
 
-    import ttd3_jax.env as env_module
-    from ttd3_jax.env import TrackingEnv, make_config
+    import ttd3_jax.sim.env as env_module
+    from ttd3_jax.sim.config import make_config
+    from ttd3_jax.sim.env import TrackingEnv
 
     env = TrackingEnv(make_config("paper", obs_noise_pos=0.01, obs_noise_vel=0.01, obs_noise_quat=0.01))
     keys = jax.random.split(jax.random.PRNGKey(0), 8)

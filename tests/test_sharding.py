@@ -12,8 +12,10 @@ import jax
 import jax.numpy as jnp
 import pytest
 
+from ttd3_jax import spec as sp
 from ttd3_jax.sharding import SWEEP, make_mesh, runner_fns, shard_vmapped
-from ttd3_jax.train import Hyper, preset
+from ttd3_jax.td3.config import Hyper
+from ttd3_jax.td3.trainer import seed_keys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 EXPECTED = (
@@ -93,4 +95,4 @@ def test_non_divisible_sweep_needs_pad():
     with pytest.raises(ValueError, match="3 entries"):
         shard_vmapped(lambda k, hp: hp.beta, (0, hp_axes), mesh=fake)(keys, Hyper(beta=jnp.zeros(3)))
     with pytest.raises(ValueError, match="num_seeds"):
-        runner_fns(None, preset("fast", num_seeds=3), None, mesh=fake)
+        runner_fns(sp.trainer_for(sp.preset("fast")), seed_keys(0, 3), None, mesh=fake)

@@ -53,6 +53,33 @@ def restore(mngr: ocp.CheckpointManager, epoch: int, like):
     return jax.tree.map(lambda o, x: np.zeros(x.shape, x.dtype) if _empty(x) else o, out, like)
 
 
+def _reason(e: Exception) -> str:
+    """An exception as one short line (orbax and tensorstore errors run to many lines)."""
+    text = " ".join(str(e).split()) or type(e).__name__
+    return f"{type(e).__name__}: {text[:160]}{'...' if len(text) > 160 else ''}"
+
+
+def restore_newest(run_dir: str, like, epoch: int | None = None):
+    """The newest checkpoint of ``run_dir`` that loads (or checkpoint ``epoch``):
+    ``(epoch, state, skipped)``, where ``skipped`` lists ``(epoch, reason)`` of newer
+    checkpoints that did not load (corrupt or half deleted).  Raises ``FileNotFoundError``
+    when none loads."""
+    mngr = manager(run_dir)
+    saved = sorted(mngr.all_steps(), reverse=True)
+    if epoch is not None:
+        if epoch not in saved:
+            raise FileNotFoundError(f"no checkpoint {epoch} in {mngr.directory}; saved: {sorted(saved)}")
+        saved = [epoch]
+    skipped = []
+    for e in saved:
+        try:  # a fresh manager each time: orbax's is not usable after a failed restore
+            return e, restore(manager(run_dir), e, like), skipped
+        except Exception as err:  # orbax raises many kinds (ValueError, OSError, KeyError, ...)
+            skipped.append((e, _reason(err)))
+    why = "; ".join(f"epoch {e}: {r}" for e, r in skipped) or "none saved"
+    raise FileNotFoundError(f"no checkpoint in {mngr.directory} loads ({why})")
+
+
 # --------------------------------------------------------------------------- selected policy
 # The policy chosen on the validation tracks (spec T8) is kept apart from the rolling train-
 # state checkpoints (which keep only the last two epochs): per seed, the actor parameters
@@ -72,8 +99,11 @@ def best_record(run_dir: str) -> dict[int, dict]:
     path = os.path.join(run_dir, "best", "best.json")
     if not os.path.exists(path):
         return {}
-    with open(path) as fh:
-        return {int(k): v for k, v in json.load(fh).items()}
+    try:
+        with open(path) as fh:
+            return {int(k): v for k, v in json.load(fh).items()}
+    except (ValueError, AttributeError) as e:
+        raise ValueError(f"{path} is not a valid record of selected policies ({_reason(e)})") from None
 
 
 def save_policy(run_dir: str, seed: int, epoch: int, value: float, policy) -> None:
@@ -97,4 +127,8 @@ def load_policy(run_dir: str, seed: int, like):
             f"no selected policy for seed {seed} in {run_dir!r} (best/ is written by quadrotor runs)"
         )
     with open(path, "rb") as fh:
-        return serialization.from_bytes(like, fh.read())
+        data = fh.read()
+    try:
+        return serialization.from_bytes(like, data)
+    except Exception as e:
+        raise ValueError(f"{path} does not load ({_reason(e)})") from None

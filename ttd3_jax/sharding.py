@@ -1,20 +1,11 @@
 """Spread seed / hyperparameter sweeps and parallel envs over all visible devices.
 
-A vmapped sweep is embarrassingly parallel along its leading axis, so placing that axis on
-a device mesh (``jax.sharding``) runs each device's share of the seeds × hyperparameters
-with no communication; the parallel envs of each seed can additionally be split over a
-second mesh axis (the shared replay buffer is then gathered on insert).  The same code runs
-on one device (the mesh has one device, nothing moves) or on eight.
-
-* :func:`shard_vmapped` - ``jit(vmap(fn))`` with the mapped axis on the ``"sweep"`` mesh
-  axis, e.g. a whole sweep as one program: ``shard_vmapped(trainer.train, (0, hp_axes))``.
-* :func:`runner_fns` - the runner's ``init`` / ``epoch`` / ``evaluate`` with the seed axis
-  on ``"sweep"`` and the env axis of the env state on ``"env"`` (used by
-  :func:`ttd3_jax.runner.run`).
-
-Multi-host (``shard_vmapped`` sweeps): call ``jax.distributed.initialize()`` first on every
-host; ``jax.devices()`` then lists all hosts' devices and the same code shards over all of
-them (docs/scaling.md).  The runner (``runner_fns``) is single-process.
+A vmapped sweep is parallel along its leading axis: on a ``(sweep, env)`` device mesh each
+device runs its share of the seeds × hyperparameters with no communication, and each seed's
+envs may be split over the ``env`` axis.  One device is the same code with nothing moved.
+:func:`shard_vmapped` is ``jit(vmap(fn))`` with the mapped axis on ``sweep`` (a whole sweep
+as one program); :func:`runner_fns` gives the runner's functions.  Multi-host sweeps: call
+``jax.distributed.initialize()`` on every host first (docs/scaling.md).
 """
 
 from __future__ import annotations
@@ -70,9 +61,8 @@ def _pad(x, axis: int, extra: int):
     return jnp.concatenate([x, jnp.repeat(last, extra, axis=axis)], axis=axis)
 
 
-def shard_vmapped(
-    fn: Callable, in_axes: tuple, mesh: Mesh | None = None, pad: bool = False, **jit_kw
-) -> Callable:
+def shard_vmapped(fn: Callable, in_axes: tuple, mesh: Mesh | None = None, pad: bool = False,
+                  **jit_kw) -> Callable:  # fmt: skip
     """``jit(vmap(fn, in_axes))`` with the mapped axis split over the mesh's ``sweep`` axis.
 
     ``in_axes`` entries (prefix trees, e.g. a ``Hyper`` of 0 / None leaves) must be 0 or
@@ -148,8 +138,27 @@ def state_shardings(state, mesh: Mesh, num_envs: int):
     return state.replace(**out)
 
 
-def runner_fns(trainer, c, per_seed: Callable, mesh: Mesh | None = None):
-    """``(init_fn, epoch_fn, eval_fn, place)`` for :func:`ttd3_jax.runner.run`.
+def per_seed(fn: Callable, num_seeds: int, in_axes: tuple) -> Callable:
+    """``fn`` mapped over the leading seed axis of the arguments marked 0 in ``in_axes``.
+
+    A single seed skips ``vmap`` (keeping the axis of length 1), so the trainer's
+    ``lax.cond`` branches stay branches instead of becoming selects that run both sides.
+    """
+    if num_seeds > 1:
+        return jax.vmap(fn, in_axes=in_axes)
+
+    def one(*args):
+        args = [
+            jax.tree.map(lambda x: x[0], a) if ax == 0 else a for a, ax in zip(args, in_axes, strict=True)
+        ]
+        return jax.tree.map(lambda x: x[None], fn(*args))
+
+    return one
+
+
+def runner_fns(trainer, keys: jax.Array, hp, mesh: Mesh | None = None):
+    """``(init_fn, epoch_fn, eval_fn, place)`` for :func:`ttd3_jax.runner.run`: the trainer's
+    functions over the seeds of ``keys`` (one per seed).
 
     On one device these are the plain ``jit(per_seed(...))`` functions, and ``place(state)``
     puts a restored (host) state on the default device uncommitted, as ``jit`` returns a fresh
@@ -158,20 +167,18 @@ def runner_fns(trainer, c, per_seed: Callable, mesh: Mesh | None = None):
     devices, the seed axis is split over ``sweep`` and the env axis over ``env``
     (:func:`seed_env_mesh`); ``place(state)`` puts a restored state on the mesh.  Single
     process only: the runner reads metrics and checkpoints on its host."""
-    mesh = seed_env_mesh(c.num_seeds, c.num_envs) if mesh is None else mesh
-    if c.num_seeds % mesh.shape[SWEEP]:
+    num_seeds, num_envs = keys.shape[0], trainer.config.num_envs
+    mesh = seed_env_mesh(num_seeds, num_envs) if mesh is None else mesh
+    if num_seeds % mesh.shape[SWEEP]:
         raise ValueError(
-            f"num_seeds ({c.num_seeds}) must be a multiple of the mesh's {SWEEP!r} axis ({mesh.shape[SWEEP]})"
+            f"num_seeds ({num_seeds}) must be a multiple of the mesh's {SWEEP!r} axis ({mesh.shape[SWEEP]})"
         )
-    init = per_seed(trainer.init, c, (0, None))
-    epoch = per_seed(trainer.epoch, c, (0, None))
-    evaluate = per_seed(trainer.evaluate, c, (0,))
+    init = per_seed(trainer.init, num_seeds, (0, None))
+    epoch = per_seed(trainer.epoch, num_seeds, (0, None))
+    evaluate = per_seed(trainer.evaluate, num_seeds, (0,))
     if math.prod(mesh.devices.shape) == 1:
         return jax.jit(init), jax.jit(epoch, donate_argnums=0), jax.jit(evaluate), jax.device_put
-    from ttd3_jax.train import seed_keys
-
-    like = jax.eval_shape(init, seed_keys(c), c.hp)
-    st = state_shardings(like, mesh, c.num_envs)
+    st = state_shardings(jax.eval_shape(init, keys, hp), mesh, num_envs)
     seeds, repl = NamedSharding(mesh, P(SWEEP)), NamedSharding(mesh, P())
     init_fn = jax.jit(init, in_shardings=(seeds, repl), out_shardings=st)
     epoch_fn = jax.jit(epoch, in_shardings=(st, repl), out_shardings=(st, seeds), donate_argnums=0)

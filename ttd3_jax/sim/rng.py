@@ -1,20 +1,14 @@
 """``split`` and ``normal`` for raw Threefry keys, in a form XLA:CPU can fuse.
 
-jax lowers the Threefry-2x32 hash on CPU as a rolled loop of 5 iterations (to keep
-compile times down).  Inside a scanned env step that loop is a chain of small kernels,
-and it costs about twice the rest of the step (``benchmarks/env_throughput.py``:
-``env_paper`` against ``env_paper_jaxrng``).  This module registers the same hash,
-written out round by round, as a jax PRNG implementation, so that jax's own
-``split`` / ``normal`` code runs on it and the whole draw fuses into the step.
-
-The draws are bit-for-bit those of ``jax.random.split`` / ``jax.random.normal`` on the
-same raw ``uint32[2]`` key (``tests/test_rng.py`` checks this).  Arithmetic on them can
-still round differently in the last bit, because XLA fuses it with the draw; the env's
-wind is checked to come out identical, its observation noise did not and stays on
-``jax.random``.  The equality holds under jax's default
-``jax_threefry_partitionable=True``; with that flag off, for typed keys, or on a jax
-without ``jax.extend.random.define_prng_impl``, the functions here simply call
-``jax.random``.
+jax lowers the Threefry-2x32 hash on CPU as a rolled loop of 5 iterations; inside a
+scanned env step that loop is a chain of small kernels that costs about twice the rest of
+the step.  This module registers the same hash, written out round by round, as a jax PRNG
+implementation, so that jax's own ``split`` / ``normal`` run on it and the draw fuses into
+the step.  The draws are bit for bit those of ``jax.random`` on the same raw ``uint32[2]``
+key (tests/test_rng.py); arithmetic fused with them may round differently in the last bit
+(the env's wind is checked identical; its observation noise stays on ``jax.random``).  With
+``jax_threefry_partitionable`` off, typed keys, or no ``define_prng_impl``, the functions
+here call ``jax.random``.
 """
 
 from __future__ import annotations

@@ -1,22 +1,9 @@
 """Robustness suite: the evaluation repeated under disturbances (spec O3).
 
-Each condition is an evaluation config (``los_rt`` mode, from ``EnvConfig.for_eval``) of
-the nominal config the controller was built for:
-
-* ``nominal``: the nominal evaluation (spec §2.5);
-* ``wind``: an Ornstein-Uhlenbeck acceleration disturbance, stationary std
-  :data:`ROBUSTNESS_WIND` = 0.5 m/s², time constant 0.5 s;
-* ``mass+20`` / ``mass-20``: vehicle mass ± :data:`ROBUSTNESS_MASS` = 20 %, unknown to the
-  controller and to the action map;
-* ``obs_noise``: Gaussian observation noise, std 0.01 m (position), 0.05 m/s (velocity)
-  and 0.005 per quaternion component (then renormalised);
-* ``delay``: one control step of actuation delay (1 ms with the ``paper`` preset, 10 ms
-  with ``practical``).
-
-:func:`evaluate_robustness` reports, per condition, Σ‖e‖ (m) and energy Σ‖a‖ over
-Spiral-RT and the LOS-RT test instances (mean ± std over seeds) and the crash count;
-:func:`format_robustness` prints it as the CLI's table
-(``python -m ttd3_jax.evaluate [RUN_DIR] --robustness``).
+Each condition (``ROBUSTNESS_DESCRIPTIONS``) is an evaluation config of the nominal config
+the controller was built for.  :func:`evaluate_robustness` reports, per condition, Σ‖e‖ (m)
+and energy Σ‖a‖ over Spiral-RT and the LOS-RT test instances (mean ± std over seeds) and
+the crash count (``python -m ttd3_jax.evaluate [RUN_DIR] --robustness`` prints it).
 """
 
 from __future__ import annotations
@@ -26,8 +13,9 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from ttd3_jax.env import EnvConfig, TrackingEnv
-from ttd3_jax.evaluate import Build, Evaluator, _fmt, los_statistics
+from ttd3_jax.control.evaluator import Build, Evaluator, los_statistics
+from ttd3_jax.sim.config import EnvConfig
+from ttd3_jax.sim.env import TrackingEnv
 
 ROBUSTNESS_WIND = 0.5  # m/s^2, OU stationary std (spec O3)
 ROBUSTNESS_MASS = 0.2  # ± fraction of the mass, unknown to the controller
@@ -68,15 +56,9 @@ def robustness_conditions(cfg: EnvConfig) -> dict[str, EnvConfig]:
     }
 
 
-def evaluate_robustness(
-    build: Build,
-    theta,
-    cfg: EnvConfig,
-    los_seeds=range(1, 21),
-    conditions=ROBUSTNESS_CONDITIONS,
-    sequential: bool = False,
-    seed: int = 0,
-) -> dict:
+def evaluate_robustness(build: Build, theta, cfg: EnvConfig, los_seeds=range(1, 21),
+                        conditions=ROBUSTNESS_CONDITIONS, sequential: bool = False,
+                        seed: int = 0) -> dict:  # fmt: skip
     """The controller ``build(theta)`` (built by the caller for the *nominal* ``cfg``) under
     each robustness condition: ``{condition: summarize(...)}`` over Spiral-RT and the LOS-RT
     test instances ``los_seeds`` (mean ± std of Σ‖e‖, energy, crash count).  Each track of a
@@ -94,24 +76,3 @@ def evaluate_robustness(
         ev = Evaluator(TrackingEnv(all_conditions[name]), build, sequential=sequential)
         out[name] = los_statistics(ev, theta, los_seeds, keys)
     return out
-
-
-def format_robustness(label: str, rob: dict) -> str:
-    """Robustness table of one controller."""
-    seeds = next(iter(rob.values()))["los_rt"]["seeds"]
-    lines = [
-        f"robustness of {label}: Spiral-RT, and LOS-RT seeds {seeds[0]}..{seeds[-1]} (mean ± std over "
-        f"{len(seeds)})",
-        f"{'condition':<10} {'Spiral Σ||e||':>13} {'LOS Σ||e|| mean ± std':>24} {'LOS crashes':>11} "
-        f"{'LOS Σ||a|| mean ± std':>22}",
-    ]
-    for name, r in rob.items():
-        los = r["los_rt"]
-        e, a = los["tracking_error"], los["energy"]
-        lines.append(
-            f"{name:<10} {_fmt(r['spiral_rt']['tracking_error'], '13.2f')} "
-            f"{_fmt(e['mean'], '13.2f')} ± {_fmt(e['std'], '8.2f')} "
-            f"{los['crashed']:>5}/{len(los['seeds']):<5} "
-            f"{_fmt(a['mean'], '12.1f')} ± {_fmt(a['std'], '7.1f')}"
-        )
-    return "\n".join(lines)

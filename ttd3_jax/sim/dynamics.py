@@ -1,17 +1,11 @@
 """Quadrotor rigid-body model with thrust + body-rate inputs, integrated with RK4.
 
-Conventions (spec §2.1, rows D1-D7): world frame z up, gravity subtracted,
-Hamilton quaternions stored scalar first ``(qw, qx, qy, qz)``, body rates in the
-body frame.  Everything here is a pure function of arrays, so it can be
-``jit``-ed, ``vmap``-ed and differentiated (the NMPC differentiates through
-:func:`rk4_step`).
-
-Shapes use ``...`` for any leading batch dimensions; the functions are written
-for a single vehicle and batched with ``jax.vmap``.
-
-Control ``u`` (shape ``(4,)``) is in physical units:
-``u[0]`` collective thrust (N under ``thrust_units="newton"``, m/s^2 under
-``"mass_normalized"``), ``u[1:4]`` commanded body rates (rad/s).
+Conventions (spec §2.1, rows D1-D7): world frame z up, gravity subtracted, Hamilton
+quaternions stored scalar first ``(qw, qx, qy, qz)``, body rates in the body frame.  Pure
+functions of one vehicle's arrays (``...``: any batch dims): ``jit``, ``vmap`` and
+differentiate them (the NMPC differentiates through :func:`rk4_step`).  Control ``u`` (4,)
+is physical: collective thrust (N under ``thrust_units="newton"``, m/s^2 under
+``"mass_normalized"``), then the commanded body rates (rad/s).
 """
 
 from __future__ import annotations
@@ -42,9 +36,9 @@ class QuadParams:
     rate_max: float = 6.0  # rad/s, every body axis
     # Only used by the "first_order" / "torque" rate models (spec D4).
     tau_rate: float = 0.03  # s, first-order body-rate time constant
-    inertia: tuple = (0.029125, 0.029125, 0.055225)  # kg m^2, diagonal of J
-    k_rate: tuple = (20.0, 20.0, 10.0)  # 1/s, rate-loop gain K_w
-    torque_max: tuple = (2.2, 1.3, 0.6)  # N m, |eta| bound per axis
+    inertia: tuple[float, float, float] = (0.029125, 0.029125, 0.055225)  # kg m^2, diagonal of J
+    k_rate: tuple[float, float, float] = (20.0, 20.0, 10.0)  # 1/s, rate-loop gain K_w
+    torque_max: tuple[float, float, float] = (2.2, 1.3, 0.6)  # N m, |eta| bound per axis
     rate_model: str = struct.field(pytree_node=False, default="instant")
     thrust_units: str = struct.field(pytree_node=False, default="newton")
 
@@ -124,9 +118,6 @@ class QuadState:
         )
 
 
-# --------------------------------------------------------------------------- quaternions
-
-
 def quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
     """Hamilton product ``a ⊗ b`` of scalar-first quaternions, shapes (..., 4)."""
     aw, ax, ay, az = jnp.moveaxis(a, -1, 0)
@@ -192,9 +183,6 @@ def quat_rate(q: jax.Array, w: jax.Array) -> jax.Array:
     )
 
 
-# --------------------------------------------------------------------------- dynamics
-
-
 def collective_accel(params: QuadParams, thrust: jax.Array) -> jax.Array:
     """Mass-normalised collective thrust c (m/s^2) from the thrust input in the model's unit."""
     return thrust / params.mass if params.thrust_units == "newton" else thrust
@@ -212,9 +200,8 @@ def rate_derivative(params: QuadParams, w: jax.Array, w_cmd: jax.Array) -> jax.A
     return (eta - gyro) / inertia
 
 
-def derivative(
-    params: QuadParams, x: QuadState, u: jax.Array, accel_ext: jax.Array | None = None
-) -> QuadState:
+def derivative(params: QuadParams, x: QuadState, u: jax.Array,
+               accel_ext: jax.Array | None = None) -> QuadState:  # fmt: skip
     """Continuous-time ``ẋ = f(x, u)``.
 
     Args:
@@ -240,15 +227,9 @@ def _axpy(a, dx: QuadState, x: QuadState) -> QuadState:
     return jax.tree.map(lambda xi, di: xi + a * di, x, dx)
 
 
-def rk4_step(
-    params: QuadParams,
-    x: QuadState,
-    u: jax.Array,
-    dt: float,
-    accel_ext: jax.Array | None = None,
-    substeps: int = 1,
-    renormalize: bool = True,
-) -> QuadState:
+def rk4_step(params: QuadParams, x: QuadState, u: jax.Array, dt: float,
+             accel_ext: jax.Array | None = None, substeps: int = 1,
+             renormalize: bool = True) -> QuadState:  # fmt: skip
     """Advance ``x`` by ``dt`` seconds under zero-order-hold ``u`` (spec D7).
 
     ``substeps`` RK4 steps of ``dt / substeps`` each; then, if ``renormalize``,

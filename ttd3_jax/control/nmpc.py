@@ -1,54 +1,35 @@
 """Nonlinear MPC baseline in pure JAX (spec §2.6): Gauss-Newton SQP, single shooting, RTI.
 
-Model
-    The environment's own model (:func:`ttd3_jax.dynamics.rk4_step` with the env's
-    :class:`~ttd3_jax.dynamics.QuadParams`, rate model included) with the input held
-    constant over each node interval: node i -> i+1 is ``node_substeps`` RK4 steps
-    covering ``dt_node`` seconds.  The plan ``U`` (N, 4) is in physical units
-    ``[thrust, ω_x, ω_y, ω_z]`` (thrust in the env's unit) inside the env's box
-    ``[thrust_min, thrust_max] × [rate_min, rate_max]³``.  Wind is not modelled.
+Model: the env's own :func:`~ttd3_jax.sim.dynamics.rk4_step` and ``QuadParams`` (rate model
+included), the input held over each node interval (``node_substeps`` RK4 steps of
+``dt_node`` s).  The plan ``U`` (N, 4) is physical ``[thrust, ω_x, ω_y, ω_z]`` inside the
+env's box.  Wind is not modelled.
 
-Cost (rpg_mpc default weights, ``Q`` multiplied by ``weight_scale``, default 4 from
-the validation-track tuning in ``experiments/tune_nmpc.py``)::
+Cost (rpg_mpc default weights, ``Q`` times ``weight_scale``, 4 from the validation-track
+tuning of ``experiments/tune_nmpc.py``)::
 
     J(U) = ½ Σ_{i=1..N} [ (p_i − p_ref,i)ᵀ Q_p (p_i − p_ref,i) + (v_i − v_ref,i)ᵀ Q_v (v_i − v_ref,i)
                           + vec(q_ref,i⁻¹ ⊗ q_i)ᵀ Q_q vec(q_ref,i⁻¹ ⊗ q_i) ]
          + ½ Σ_{i=0..N−1} (ũ_i − ũ_ref,i)ᵀ R (ũ_i − ũ_ref,i)
 
-References are the analytic p/v/a of the track (:func:`ttd3_jax.trajectories.evaluate`)
-at the node times (physics step ``k + round(i·dt_node/dt)``), so the controller has
-full preview.  ``q_ref`` follows from differential flatness: body z ∥ a_ref + g with
-zero heading, i.e. the minimal ("tilt-only") rotation from world z to
-a_ref + g, as rpg's ``acc_and_heading_to_orientation`` with heading 0.  The input
-reference is ``(‖a_ref + g‖, 0, 0, 0)``.  The quaternion error uses the sign
-with non-negative scalar part (q and −q are the same attitude).
+References are the track's analytic p/v/a at the node times (full preview).  ``q_ref`` is
+the tilt-only rotation from world z to a_ref + g (differential flatness, zero heading, as
+rpg's ``acc_and_heading_to_orientation``); the input reference is ``(‖a_ref + g‖, 0, 0, 0)``;
+the quaternion error takes the sign with a non-negative scalar part.  The input residual is
+on ``ũ = (c, ω)`` with the mass-normalised thrust c (m/s²), as in rpg_mpc, so ``R =
+diag(w_input)`` means the same under both thrust units.
 
-Input-cost scaling.  The input residual is taken on ``ũ = (c, ω)`` with the
-*mass-normalised* collective thrust ``c`` (m/s², = f/m under ``thrust_units="newton"``)
-and the rates in rad/s, exactly the input of rpg_mpc, so ``R = diag(w_input)`` has
-the same meaning under both thrust units; in newton units this is
-``R_f = w_input[0]/m²`` on the thrust in N.
+Solver: r(U) stacks the weighted state residuals (9 per node); its Jacobian (9N × 4N) comes
+from ``jax.jacfwd`` through a ``lax.scan`` rollout, so ``H = JᵀJ + R + reg·I`` and
+``g = Jᵀr + R(U − U_ref)``.  The box QP on ΔU is solved by FISTA (``fista_iters`` steps of
+1/L) on Jacobi-scaled variables ``ΔU = D z``, ``D = diag(H)^{-½}``, with L = 1.1 × a power-
+iteration estimate of λ_max(DHD).  The step is ``U + αΔU`` with the first α in (1, ½, ¼, ⅛)
+that lowers the true cost (one batch), else U is kept (``line_search=False``: α = 1).
 
-Solver (per solve, ``iters`` Gauss-Newton iterations)
-    r(U) stacks the weighted state residuals of all nodes (9 per node); its Jacobian
-    ``J`` (9N × 4N) comes from ``jax.jacfwd`` through a ``lax.scan`` rollout.  The
-    input residual is linear in U, so ``H = JᵀJ + R + reg·I`` and
-    ``g = Jᵀr + R(U − U_ref)``.  The box QP ``min ½ΔUᵀHΔU + gᵀΔU, lb ≤ U + ΔU ≤ ub`` is
-    solved by FISTA (``fista_iters`` projected steps of 1/L) on Jacobi-scaled
-    variables ``ΔU = D z`` with ``D = diag(H)^{-½}`` (a diagonal scaling keeps the box a
-    box and evens out thrust-vs-rate units); L is 1.1 × the power-iteration estimate
-    (``power_iters``) of λ_max(DHD).  The step is then ``U + αΔU`` with the first α in
-    (1, ½, ¼, ⅛) that lowers the true cost J (all four are evaluated in one batch);
-    if none does, U is kept.  ``line_search=False`` always takes α = 1.
-
-Closed loop (:func:`nmpc_controller`)
-    The carry holds the plan ``U``, the control steps since it was computed and the
-    number of solves.  The first call runs ``sqp_iters_first`` iterations from
-    ``U_ref``; later ones re-solve every ``solve_every`` control steps with
-    ``sqp_iters`` iterations (1 = real-time iteration) from the previous plan shifted
-    by the elapsed time (linear interpolation between nodes, last node repeated).
-    Between solves the plan is applied as planned (zero-order hold per node).
-    Everything is jit/vmap-able; there is no Python per step.
+Closed loop (:func:`nmpc_controller`): the first call runs ``sqp_iters_first`` iterations
+from ``U_ref``; later ones re-solve every ``solve_every`` control steps with ``sqp_iters``
+(1 = real-time iteration) from the previous plan shifted by the elapsed time, which is
+applied as planned in between.  Everything is jit/vmap-able; there is no Python per step.
 """
 
 from __future__ import annotations
@@ -61,8 +42,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from ttd3_jax import trajectories as tr
-from ttd3_jax.dynamics import QuadParams, QuadState, quat_conj, quat_mul, rk4_step
+from ttd3_jax.control.closed_loop import Controller
+from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim.dynamics import QuadParams, QuadState, quat_conj, quat_mul, rk4_step
+from ttd3_jax.sim.env import control_to_action
 
 LINE_SEARCH_ALPHAS = (1.0, 0.5, 0.25, 0.125)
 
@@ -91,46 +74,29 @@ class NMPCConfig:
     regularization: float = 1e-6  # added to the diagonal of H
 
     def __post_init__(self):
-        def integer(name, lo, hi):
+        for name, hi in _INTEGERS.items():
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-                raise ValueError(f"NMPCConfig.{name} must be an integer in [{lo}, {hi}], got {v!r}")
-
-        def number(name, lo, hi, lo_open=True):
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi:
+                raise ValueError(f"NMPCConfig.{name} must be an integer in [1, {hi}], got {v!r}")
+        for name, hi in _NUMBERS.items():
             v = getattr(self, name)
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-            ok = ok and (v > lo if lo_open else v >= lo) and v <= hi
-            if not ok:
-                br = "(" if lo_open else "["
-                raise ValueError(f"NMPCConfig.{name} must be a number in {br}{lo}, {hi}], got {v!r}")
-
-        def weights(name, n, positive):
-            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= hi:
+                raise ValueError(f"NMPCConfig.{name} must be a number in (0.0, {hi}], got {v!r}")
+        for name, positive in _WEIGHTS.items():
+            v, n, sign = getattr(self, name), 4 if name == "w_input" else 3, "> 0" if positive else ">= 0"
             ok = isinstance(v, (tuple, list)) and len(v) == n
-            ok = ok and all(
-                isinstance(x, (int, float)) and math.isfinite(x) and (x > 0 if positive else x >= 0)
-                for x in v
-            )
-            if not ok:
-                rng = "> 0" if positive else ">= 0"
-                raise ValueError(f"NMPCConfig.{name} must be {n} finite numbers {rng}, got {v!r}")
-
-        integer("horizon", 1, 500)
-        number("dt_node", 0.0, 1.0)
-        weights("w_pos", 3, positive=True)
-        weights("w_vel", 3, positive=False)
-        weights("w_att", 3, positive=False)
-        weights("w_input", 4, positive=False)
-        number("weight_scale", 0.0, 1e6)
-        integer("sqp_iters_first", 1, 1000)
-        integer("sqp_iters", 1, 1000)
-        integer("fista_iters", 1, 10_000)
-        integer("power_iters", 1, 1000)
-        integer("solve_every", 1, 100_000)
-        integer("node_substeps", 1, 100)
-        number("regularization", 0.0, 1.0)
+            ok = ok and all(isinstance(x, (int, float)) and math.isfinite(x) and x >= 0 for x in v)
+            if not ok or (positive and min(v) <= 0):
+                raise ValueError(f"NMPCConfig.{name} must be {n} finite numbers {sign}, got {v!r}")
         if not isinstance(self.line_search, bool):
             raise ValueError(f"NMPCConfig.line_search must be True or False, got {self.line_search!r}")
+
+
+# the bounds NMPCConfig checks: integers in [1, hi], numbers in (0, hi], weights (> 0 if True)
+_INTEGERS = {"horizon": 500, "sqp_iters_first": 1000, "sqp_iters": 1000, "fista_iters": 10_000,
+             "power_iters": 1000, "solve_every": 100_000, "node_substeps": 100}  # fmt: skip
+_NUMBERS = {"dt_node": 1.0, "weight_scale": 1e6, "regularization": 1.0}
+_WEIGHTS = {"w_pos": True, "w_vel": False, "w_att": False, "w_input": False}
 
 
 class References(NamedTuple):
@@ -211,12 +177,7 @@ class NMPC:
             x = rk4_step(params, x, u, cfg.dt_node, substeps=cfg.node_substeps)
             return x, x
 
-        _, xs = jax.lax.scan(
-            step,
-            x0,
-            U,
-        )
-        return xs
+        return jax.lax.scan(step, x0, U)[1]
 
     def state_residual(self, x0: QuadState, ref: References, U: jax.Array) -> jax.Array:
         """Weighted state residual (9N,): √Q_p e_p, √Q_v e_v, √Q_q vec(q_ref⁻¹⊗q) per node."""
@@ -309,11 +270,8 @@ class NMPC:
 
 
 def nmpc_controller(env_config, cfg: NMPCConfig | None = None):
-    """NMPC as an :class:`ttd3_jax.evaluate.Controller` for ``env_config`` (its model,
-    bounds, action map, ``dt`` and ``action_repeat``)."""
-    from ttd3_jax.env import control_to_action
-    from ttd3_jax.evaluate import Controller
-
+    """NMPC as a :class:`~ttd3_jax.control.closed_loop.Controller` for ``env_config`` (its
+    model, bounds, action map, ``dt`` and ``action_repeat``)."""
     mpc = NMPC(env_config, cfg)
     cfg = mpc.cfg
     control_dt = env_config.control_dt

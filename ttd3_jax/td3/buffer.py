@@ -5,8 +5,7 @@ The capacity is a multiple of the number of parallel envs, so every insert is on
 sampling is one ``randint`` gather.  Nothing is O(capacity) per step.
 
 Row ``r`` holds env ``r % num_envs``; that env's next transition is at row
-``r + num_envs`` (mod capacity).  :func:`sample_nstep` uses this to build n-step
-returns with ``n`` gathers and no extra storage.
+``r + num_envs`` (mod capacity).
 """
 
 from __future__ import annotations
@@ -28,15 +27,6 @@ class Transition:
     next_obs: jax.Array  # (..., n_obs)
     terminated: jax.Array  # (...,) 0.0 or 1.0
     done: jax.Array  # (...,) 1.0 when the episode ended here (terminated or truncated)
-
-
-@struct.dataclass
-class NStep:
-    """The n-step part of a minibatch: y = reward + discount · Q'(next_obs, π'(next_obs))."""
-
-    reward: jax.Array  # (B,) Σ_{j<m} γ^j r_j, m ≤ n steps, stopping at the episode's end
-    next_obs: jax.Array  # (B, n_obs) the observation after those m steps
-    discount: jax.Array  # (B,) γ^m, or 0 when the episode terminated within them
 
 
 @struct.dataclass
@@ -77,30 +67,3 @@ def sample(buf: ReplayBuffer, key: jax.Array, batch_size: int) -> Transition:
     """Uniform sample with replacement from the filled rows."""
     idx = jax.random.randint(key, (batch_size,), 0, jnp.maximum(buf.size, 1))
     return jax.tree.map(lambda d: d[idx], buf.data)
-
-
-def sample_nstep(buf: ReplayBuffer, key: jax.Array, batch_size: int, n: int, num_envs: int, gamma):
-    """Uniform sample of start rows whose next ``n - 1`` transitions (same env) are stored,
-    as the 1-step :class:`Transition` of each start row and its :class:`NStep` return.
-
-    Accumulation stops at the first ``done`` (the next episode's rows are not used); the
-    return then bootstraps from that step's ``next_obs`` unless it ``terminated``.  With
-    ``n = 1`` this is :func:`sample` plus ``discount = γ (1 − terminated)``."""
-    span = (n - 1) * num_envs  # the newest start rows lack successors
-    oldest = jnp.where(buf.size < buf.capacity, 0, buf.pos)
-    off = jax.random.randint(key, (batch_size,), 0, jnp.maximum(buf.size - span, 1))
-    rows = (oldest + off) % buf.capacity
-    first = jax.tree.map(lambda d: d[rows], buf.data)
-    ret, disc = first.reward, gamma * (1.0 - first.terminated)
-    alive, boot = 1.0 - first.done, first.next_obs
-    d = buf.data
-    for j in range(1, n):  # static, small; the successors' obs and action are not needed
-        r = (rows + j * num_envs) % buf.capacity
-        t = d.replace(obs=None, action=None, reward=d.reward[r], next_obs=d.next_obs[r],
-                      terminated=d.terminated[r], done=d.done[r])  # fmt: skip
-        g = gamma**j
-        ret = ret + alive * g * t.reward
-        disc = jnp.where(alive > 0, g * gamma * (1.0 - t.terminated), disc)
-        boot = jnp.where(alive[:, None] > 0, t.next_obs, boot)
-        alive = alive * (1.0 - t.done)
-    return first, NStep(reward=ret, next_obs=boot, discount=disc)

@@ -3,10 +3,8 @@
 Position loop: ``a_des = a_ref + Kp (p_ref - p) + Kv (v_ref - v) + g ẑ`` (m/s^2).
 Collective thrust is ``a_des · z_B`` (projected on the current body z axis) and
 the desired attitude has ``z_B,des ∥ a_des`` and zero yaw.  Attitude loop:
-``ω_cmd = -K_R · vee(R_desᵀR - RᵀR_des)/2``, saturated to the rate box.
-
-It sees the true state and the analytic reference (position, velocity and
-acceleration feed-forward).  It is the cheap classical reference point.
+``ω_cmd = -K_R · vee(R_desᵀR - RᵀR_des)/2``, saturated to the rate box.  It sees the
+true state and the analytic reference (position, velocity and acceleration feed-forward).
 """
 
 from __future__ import annotations
@@ -16,7 +14,11 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from ttd3_jax.dynamics import QuadParams, QuadState, clip_control, quat_to_rotmat
+from ttd3_jax.control.closed_loop import Controller
+from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim.config import EnvConfig
+from ttd3_jax.sim.dynamics import QuadParams, QuadState, clip_control, quat_to_rotmat
+from ttd3_jax.sim.env import control_to_action
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,14 +43,8 @@ def _vee(m: jax.Array) -> jax.Array:
     return jnp.stack([m[2, 1], m[0, 2], m[1, 0]])
 
 
-def geometric_control(
-    params: QuadParams,
-    gains: GeometricGains,
-    x: QuadState,
-    p_ref: jax.Array,
-    v_ref: jax.Array,
-    a_ref: jax.Array,
-) -> jax.Array:
+def geometric_control(params: QuadParams, gains: GeometricGains, x: QuadState, p_ref: jax.Array,
+                      v_ref: jax.Array, a_ref: jax.Array) -> jax.Array:  # fmt: skip
     """Physical control ``[thrust, ω_x, ω_y, ω_z]`` (thrust in the model's unit), clipped."""
     f = x.p.dtype
     g = jnp.asarray([0.0, 0.0, params.gravity], f)
@@ -70,3 +66,16 @@ def geometric_control(
     w_cmd = -jnp.asarray(gains.k_att, f) * e_R
     thrust = c * params.mass if params.thrust_units == "newton" else c
     return clip_control(params, jnp.concatenate([thrust[None], w_cmd]))
+
+
+def geometric_controller(cfg: EnvConfig, gains: GeometricGains | None = None) -> Controller:
+    """:func:`geometric_control` fed with the analytic reference at the current step."""
+    gains = gains or GeometricGains()
+
+    def act(carry, state):
+        ps = state.pipeline_state
+        p_ref, v_ref, a_ref = tr.evaluate(ps.track, ps.k, cfg.dt)
+        u = geometric_control(cfg.quad, gains, ps.quad, p_ref, v_ref, a_ref)
+        return control_to_action(cfg, u), carry
+
+    return Controller(init=lambda s: (), act=act)

@@ -13,9 +13,8 @@ evaluated in O(1) (:func:`evaluate`).  Two families cover everything:
   ``first_step`` sit at the origin (the LOS-RT literal start, spec T7).
   LOS-RT (A = 0) and the "dynamics-generated" training tracks use it.
 
-A track never stores the dense 3000-point table, so an environment state stays
-small and reset costs O(segments).  Use :func:`reference` for dense arrays.
-All generators are pure functions of a PRNG key and can be ``vmap``-ped over keys.
+A track never stores the dense 3000-point table (:func:`reference` makes one), so an env
+state stays small.  All generators are pure functions of a PRNG key; ``vmap`` them.
 """
 
 from __future__ import annotations
@@ -36,7 +35,6 @@ LOS_HEADINGS = ("absolute", "cumulative")
 # produce a test instance (see docs/paper-notes.md, T8).
 _TRAIN_TAG = 0x7EA1
 _VALIDATION_TAG = 0x5A11
-_SCALE_TAG = 0x5CA1
 NUM_VALIDATION_TRACKS = 10
 
 # Training-mixture ranges (spec §2.3).
@@ -74,10 +72,6 @@ class TrackConfig:
     los_init_point: tuple[float, float, float] = (0.1, 0.1, 0.1)  # m
     los_climb_rate: float = 0.1  # m/s (1e-4 m per 1 ms step)
     train_mix: tuple[float, float, float] = (0.5, 0.25, 0.25)  # (dynamics, spiral, LOS) weights
-    # each training track is scaled in space by s ~ log-U(lo, hi) (positions, speeds and
-    # accelerations times s; not in the paper): (1, 1) is the mixture as specified, a low
-    # ``lo`` adds slow, small tracks such as Spiral-RT's 0.15 m/s
-    train_scale: tuple[float, float] = (1.0, 1.0)
 
     def __post_init__(self):
         if not (math.isfinite(self.spiral_time_scale) and self.spiral_time_scale > 0):
@@ -93,9 +87,6 @@ class TrackConfig:
             raise ValueError(f"los_segment_steps must be an integer >= 1, got {self.los_segment_steps}")
         if self.los_heading not in LOS_HEADINGS:
             raise ValueError(f"los_heading must be one of {LOS_HEADINGS}, got {self.los_heading!r}")
-        sc = self.train_scale
-        if len(sc) != 2 or not all(map(math.isfinite, sc)) or not 0 < sc[0] <= sc[1]:
-            raise ValueError(f"train_scale must be two finite numbers 0 < min <= max, got {sc}")
         w = self.train_mix
         if len(w) != 3 or not all(map(math.isfinite, w)) or any(x < 0 for x in w) or sum(w) <= 0:
             raise ValueError(
@@ -164,41 +155,20 @@ def _segments(requested: int | None, needed: int, horizon_steps: int) -> int:
     return int(requested)
 
 
-def _make(
-    kind,
-    *,
-    n_seg,
-    gain=0.0,
-    rate=0.0,
-    climb=0.0,
-    phase=0.0,
-    time_scale=1.0,
-    seg_steps=1,
-    first_step=0,
-    seg_p=None,
-    seg_v=None,
-    seg_a=None,
-) -> Track:
+_SPIRAL_DEFAULTS = {"gain": 0.0, "rate": 0.0, "climb": 0.0, "phase": 0.0, "time_scale": 1.0}
+
+
+def _make(kind, *, n_seg, seg_steps=1, first_step=0, seg_p=None, seg_v=None, seg_a=None, **spiral) -> Track:
+    """A :class:`Track` of ``kind``; ``spiral`` sets the spiral fields (else 0, time scale 1)."""
     f = _float()
-    zeros = jnp.zeros((n_seg, 3), f)
-
-    def table(x):
-        return zeros if x is None else jnp.asarray(x, f)
-
+    table = lambda x: jnp.zeros((n_seg, 3), f) if x is None else jnp.asarray(x, f)  # noqa: E731
     return Track(
         kind=jnp.asarray(kind, jnp.int32),
-        gain=jnp.asarray(gain, f),
-        rate=jnp.asarray(rate, f),
-        climb=jnp.asarray(climb, f),
-        phase=jnp.asarray(phase, f),
-        time_scale=jnp.asarray(time_scale, f),
+        **{k: jnp.asarray(spiral.get(k, v), f) for k, v in _SPIRAL_DEFAULTS.items()},
         seg_steps=jnp.asarray(seg_steps, jnp.int32),
         first_step=jnp.asarray(first_step, jnp.int32),
         seg=jnp.stack([table(seg_p), table(seg_v), table(seg_a)], -2),
     )
-
-
-# --------------------------------------------------------------------------- evaluation
 
 
 def _spiral(track: Track, t: jax.Array):
@@ -255,9 +225,6 @@ def reference(track: Track, dt: float, num_points: int) -> Reference:
     return Reference(pos=pos, vel=vel, acc=acc)
 
 
-# --------------------------------------------------------------------------- test tracks
-
-
 def spiral_rt(cfg: TrackConfig = TrackConfig(), num_segments: int = 1) -> Track:
     """The paper's Spiral-RT (eq. 6) with t in seconds scaled by ``spiral_time_scale``."""
     return _make(
@@ -265,10 +232,10 @@ def spiral_rt(cfg: TrackConfig = TrackConfig(), num_segments: int = 1) -> Track:
     )
 
 
-def _los_tables(
-    thetas, speeds, *, dt, seg_steps, heading_cumulative, p_is_speed, climb_rate, init_point, literal_init
-):
-    """Segment start positions/velocities for LOS tracks (zero acceleration)."""
+def _los_tables(thetas, speeds, dt, seg_steps, heading_cumulative, p_is_speed, climb_rate, init_point,
+                literal_init):  # fmt: skip
+    """Segment start positions/velocities for LOS tracks (zero acceleration): headings θ
+    (absolute or cumulative), speeds (m/s, or m per step unless ``p_is_speed``), climb m/s."""
     psi = jnp.where(heading_cumulative, jnp.cumsum(thetas), thetas)
     speed = jnp.where(p_is_speed, speeds, speeds / dt)  # m/s
     vz = jnp.full_like(speed, climb_rate)
@@ -294,13 +261,8 @@ def _prefix_uniform(key: jax.Array, n: int, dtype, lo, hi) -> jax.Array:
     return jnp.concatenate([base, extra])
 
 
-def los_rt(
-    key: jax.Array,
-    cfg: TrackConfig = TrackConfig(),
-    num_segments: int | None = None,
-    dt: float = 1e-3,
-    horizon_steps: int = 3002,
-) -> Track:
+def los_rt(key: jax.Array, cfg: TrackConfig = TrackConfig(), num_segments: int | None = None,
+           dt: float = 1e-3, horizon_steps: int = 3002) -> Track:  # fmt: skip
     """LOS-RT (eq. 7) drawn from ``key``: θ ~ U(±θmax), p ~ U(speed range) every S steps.
 
     ``p_d(k+1) = p_d(k) + (p cosψ·dt, p sinψ·dt, climb·dt)``, ``p_d(0) = 0`` and, under
@@ -313,17 +275,9 @@ def los_rt(
     f = _float()
     thetas = _prefix_uniform(k_theta, n, f, -cfg.los_theta_max, cfg.los_theta_max)
     speeds = _prefix_uniform(k_speed, n, f, cfg.los_speed[0], cfg.los_speed[1])
-    starts, vel = _los_tables(
-        thetas,
-        speeds,
-        dt=dt,
-        seg_steps=jnp.asarray(S),
-        p_is_speed=cfg.los_p_is_speed,
-        heading_cumulative=cfg.los_heading == "cumulative",
-        climb_rate=cfg.los_climb_rate,
-        init_point=cfg.los_init_point,
-        literal_init=cfg.los_literal_init,
-    )
+    cumulative = cfg.los_heading == "cumulative"
+    starts, vel = _los_tables(thetas, speeds, dt, jnp.asarray(S), cumulative, cfg.los_p_is_speed,
+                              cfg.los_climb_rate, cfg.los_init_point, cfg.los_literal_init)  # fmt: skip
     return _make(
         PIECEWISE, n_seg=n, seg_steps=S, first_step=int(cfg.los_literal_init), seg_p=starts, seg_v=vel
     )
@@ -336,9 +290,6 @@ def los_test_track(seed: int, cfg: TrackConfig = TrackConfig(), **kw) -> Track:
     return los_rt(jax.random.PRNGKey(int(seed)), cfg, **kw)
 
 
-# --------------------------------------------------------------------------- training mixture
-
-
 def _uniform(u: jax.Array, lo, hi) -> jax.Array:
     """Map U(0, 1) samples onto U(lo, hi)."""
     return lo + (hi - lo) * u
@@ -349,16 +300,10 @@ def _randint(u: jax.Array, lo: int, hi: int) -> jax.Array:
     return jnp.clip(jnp.floor(lo + (hi - lo + 1) * u).astype(jnp.int32), lo, hi)
 
 
-# The mixture draws one block of U(0, 1) numbers per track and slices it: one
-# threefry call instead of a dozen keeps the compiled reset small and fast to build.
-def _dynamics_uniforms(n_seg: int) -> int:
-    return 1 + 3 * n_seg
-
-
-def _los_uniforms(n_seg: int) -> int:
-    return 6 + 2 * n_seg
-
-
+# The mixture draws one block of U(0, 1) numbers per track and slices it: one threefry call
+# instead of a dozen keeps the compiled reset small and fast to build.  Sizes per family:
+_dynamics_uniforms = lambda n_seg: 1 + 3 * n_seg  # noqa: E731
+_los_uniforms = lambda n_seg: 6 + 2 * n_seg  # noqa: E731
 _SPIRAL_UNIFORMS = 5
 
 
@@ -400,24 +345,10 @@ def _train_los(u: jax.Array, n_seg: int, dt: float, cfg: TrackConfig) -> Track:
     thetas = _uniform(u[6 : 6 + n_seg], -1.0, 1.0) * theta_max
     speeds = _uniform(u[6 + n_seg : 6 + 2 * n_seg], *_LOS_SPEED)
     starts, vel = _los_tables(
-        thetas,
-        speeds,
-        dt=dt,
-        seg_steps=seg_steps,
-        heading_cumulative=cumulative,
-        p_is_speed=True,
-        climb_rate=climb,
-        init_point=cfg.los_init_point,
-        literal_init=literal,
+        thetas, speeds, dt, seg_steps, cumulative, True, climb, cfg.los_init_point, literal
     )
-    return _make(
-        PIECEWISE,
-        n_seg=n_seg,
-        seg_steps=seg_steps,
-        first_step=literal.astype(jnp.int32),
-        seg_p=starts,
-        seg_v=vel,
-    )
+    first = literal.astype(jnp.int32)
+    return _make(PIECEWISE, n_seg=n_seg, seg_steps=seg_steps, first_step=first, seg_p=starts, seg_v=vel)
 
 
 def train_num_segments(horizon_steps: int, dt: float) -> int:
@@ -426,13 +357,8 @@ def train_num_segments(horizon_steps: int, dt: float) -> int:
     return num_segments_for(horizon_steps, max(1, min_seg))
 
 
-def sample_train_track(
-    key: jax.Array,
-    cfg: TrackConfig = TrackConfig(),
-    dt: float = 1e-3,
-    horizon_steps: int = 3002,
-    num_segments: int | None = None,
-) -> Track:
+def sample_train_track(key: jax.Array, cfg: TrackConfig = TrackConfig(), dt: float = 1e-3,
+                       horizon_steps: int = 3002, num_segments: int | None = None) -> Track:  # fmt: skip
     """One track of the training mixture (dynamics / random spiral / random LOS, weights
     ``cfg.train_mix``).  Starts at the origin.  Never yields a test instance."""
     n = _segments(num_segments, train_num_segments(horizon_steps, dt), horizon_steps)
@@ -442,31 +368,15 @@ def sample_train_track(
     w = jnp.cumsum(jnp.asarray(cfg.train_mix, u.dtype))
     cat = jnp.sum(u_cat[0] * w[-1] >= w[:2])  # 0, 1 or 2 with probabilities ∝ train_mix
     candidates = (_train_dynamics(u_dyn, n, dt), _train_spiral(u_sp, n), _train_los(u_los, n, dt, cfg))
-    track = jax.tree.map(lambda a, b, c: jnp.select([cat == 0, cat == 1], [a, b], c), *candidates)
-    if tuple(cfg.train_scale) == (1.0, 1.0):
-        return track  # as specified; no extra draw, so the default mixture is unchanged
-    lo, hi = (math.log(x) for x in cfg.train_scale)
-    u_s = jax.random.uniform(jax.random.fold_in(key, _SCALE_TAG), (), u.dtype)
-    return scale_track(track, jnp.exp(_uniform(u_s, lo, hi)))
+    return jax.tree.map(lambda a, b, c: jnp.select([cat == 0, cat == 1], [a, b], c), *candidates)
 
 
-def scale_track(track: Track, s: jax.Array) -> Track:
-    """The track scaled in space by ``s`` about the origin (p -> s p; speeds and
-    accelerations scale by s too; the timing is unchanged)."""
-    return track.replace(gain=track.gain * s, climb=track.climb * s, seg=track.seg * s)
-
-
-def validation_tracks(
-    cfg: TrackConfig = TrackConfig(),
-    dt: float = 1e-3,
-    horizon_steps: int = 3002,
-    num_segments: int | None = None,
-) -> Track:
+def validation_tracks(cfg: TrackConfig = TrackConfig(), dt: float = 1e-3, horizon_steps: int = 3002,
+                      num_segments: int | None = None) -> Track:  # fmt: skip
     """The 10 fixed validation tracks (a batched :class:`Track`, leading axis 10) drawn
     from the training mixture; used for model selection and NMPC tuning."""
-    keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(_VALIDATION_TAG), i))(
-        jnp.arange(NUM_VALIDATION_TRACKS)
-    )
+    base = jax.random.PRNGKey(_VALIDATION_TAG)
+    keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.arange(NUM_VALIDATION_TRACKS))
     return jax.vmap(lambda k: sample_train_track(k, cfg, dt, horizon_steps, num_segments))(keys)
 
 

@@ -7,7 +7,9 @@ rewards r_j,
     σ = β·u_max·exp(−λ t) + (1 − β)·u_max·exp(−δ)
 
 where t counts episode-equivalents of collected transitions (``t_unit``), and σ is
-kept unchanged when r_max − r_min ≤ 1e-8.  TD3 is the same code with σ ≡ ``hp.sigma``.
+kept unchanged when r_max − r_min ≤ 1e-8.  TD3 is the same code with σ ≡ ``hp.sigma``
+(``time_attenuating=False``, ``TrainConfig.algo = "td3"``).  ``hp`` is the trainer's
+:class:`~ttd3_jax.td3.config.Hyper`.
 """
 
 from __future__ import annotations
@@ -18,7 +20,6 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-SCHEDULES = ("time_attenuating", "constant", "linear")
 DELTA_REDUCES = ("sum", "mean")
 R_RANGES = ("batch", "running")
 T_UNITS = ("episode", "env_step", "update")
@@ -26,9 +27,8 @@ T_UNITS = ("episode", "env_step", "update")
 
 @dataclasses.dataclass(frozen=True)
 class NoiseConfig:
-    """Static choices of the schedule (numeric values live in ``Hyper``)."""
+    """Static readings of the T-TD3 schedule (spec A1-A3, A5; numeric values live in ``Hyper``)."""
 
-    schedule: str = "time_attenuating"
     delta_reduce: str = "sum"  # A1
     r_range: str = "batch"  # A2: min/max of the minibatch, or running extremes
     t_unit: str = "episode"  # A3: t = transitions / episode_length, transitions, or updates
@@ -36,7 +36,6 @@ class NoiseConfig:
 
     def __post_init__(self):
         for name, allowed in (
-            ("schedule", SCHEDULES),
             ("delta_reduce", DELTA_REDUCES),
             ("r_range", R_RANGES),
             ("t_unit", T_UNITS),
@@ -52,27 +51,23 @@ class NoiseState:
     r_max: jax.Array
 
 
-def init(cfg: NoiseConfig, hp) -> NoiseState:
-    """σ starts at u_max for T-TD3 (Alg. 1), at ``hp.sigma`` otherwise."""
-    sigma = hp.u_max if cfg.schedule == "time_attenuating" else hp.sigma
+def init(hp, time_attenuating: bool) -> NoiseState:
+    """σ starts at u_max for T-TD3 (Alg. 1), at ``hp.sigma`` for TD3."""
+    sigma = hp.u_max if time_attenuating else hp.sigma
     f = jnp.float32
     return NoiseState(
         sigma=jnp.asarray(sigma, f), r_min=jnp.asarray(jnp.inf, f), r_max=jnp.asarray(-jnp.inf, f)
     )
 
 
-def update(cfg: NoiseConfig, hp, ns: NoiseState, rewards: jax.Array, n_tr, n_upd, n_total: int,
+def update(cfg: NoiseConfig, time_attenuating: bool, hp, ns: NoiseState, rewards: jax.Array, n_tr, n_upd,
            episode_length: int) -> NoiseState:  # fmt: skip
     """σ after one critic update on a minibatch with ``rewards`` (B,).
 
-    ``n_tr``: transitions collected so far; ``n_upd``: updates done; ``n_total``: the
-    run's transition budget (for ``linear``); ``episode_length``: L_nom, transitions
-    per nominal episode of the training env (t_unit="episode")."""
-    if cfg.schedule == "constant":
+    ``n_tr``: transitions collected so far; ``n_upd``: updates done; ``episode_length``:
+    L_nom, transitions per nominal episode of the training env (t_unit="episode")."""
+    if not time_attenuating:
         return ns.replace(sigma=jnp.asarray(hp.sigma, ns.sigma.dtype))
-    if cfg.schedule == "linear":
-        frac = jnp.clip(n_tr / n_total, 0.0, 1.0)
-        return ns.replace(sigma=(hp.sigma + (hp.sigma_end - hp.sigma) * frac).astype(ns.sigma.dtype))
     b_min, b_max = jnp.min(rewards), jnp.max(rewards)
     if cfg.r_range == "running":
         r_min, r_max = jnp.minimum(ns.r_min, b_min), jnp.maximum(ns.r_max, b_max)

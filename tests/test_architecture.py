@@ -1,0 +1,88 @@
+"""The package's shape (docs/architecture.md): layers that import only downward, no import
+inside a function, and modules and functions small enough to read."""
+
+from __future__ import annotations
+
+import ast
+import pathlib
+
+PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "ttd3_jax"
+# each module's layer: a module may import only modules of its own or a lower layer
+LAYERS = {"sim": 1, "control": 2, "td3": 3, "train": 5, "evaluate": 5}
+APP = 4  # everything else at the top level: spec, runs, checkpoint, runner, sharding, report, cache
+MAX_MODULE_LINES, MAX_FUNCTION_LINES = 450, 80
+
+
+def modules():
+    for path in sorted(PACKAGE.rglob("*.py")):
+        name = ".".join(("ttd3_jax", *path.relative_to(PACKAGE).with_suffix("").parts)).removesuffix(
+            ".__init__"
+        )
+        yield name, path, ast.parse(path.read_text(), str(path))
+
+
+NAMES = {name for name, _, _ in modules()}
+
+
+def layer(module: str) -> int:
+    parts = module.split(".")
+    return LAYERS.get(parts[1], APP) if len(parts) > 1 else APP
+
+
+def package_imports(tree: ast.AST):
+    """``(node, imported module)`` for every import of a ``ttd3_jax`` module."""
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("ttd3_jax"):
+            for a in node.names:  # "from ttd3_jax.sim import env" imports the module ttd3_jax.sim.env
+                full = f"{node.module}.{a.name}"
+                yield node, full if full in NAMES else node.module
+        elif isinstance(node, ast.Import):
+            yield from ((node, a.name) for a in node.names if a.name.startswith("ttd3_jax"))
+
+
+def test_imports_only_go_down_the_layers_and_never_hide_in_functions():
+    wrong, hidden = [], []
+    for name, _, tree in modules():
+        top = set(map(id, tree.body))
+        for node, target in package_imports(tree):
+            if layer(target) > layer(name):
+                wrong.append(f"{name} (layer {layer(name)}) imports {target} (layer {layer(target)})")
+            if id(node) not in top:
+                hidden.append(f"{name}:{node.lineno} imports {target} inside a function")
+    assert not wrong, "\n".join(wrong)
+    assert not hidden, "\n".join(hidden)
+
+
+def test_no_import_cycle():
+    graph = {name: set() for name in NAMES}
+    for name, _, tree in modules():
+        graph[name] |= {t for _, t in package_imports(tree) if t in graph and t != name}
+    done, stack = set(), []
+
+    def visit(m):
+        if m in stack:
+            raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(m) :] + [m]))
+        if m not in done:
+            stack.append(m)
+            for n in sorted(graph[m]):
+                visit(n)
+            stack.pop()
+            done.add(m)
+
+    for m in sorted(graph):
+        visit(m)
+
+
+def test_modules_and_functions_are_small():
+    long_modules, long_functions = [], []
+    for name, path, tree in modules():
+        n = len(path.read_text().splitlines())
+        if n > MAX_MODULE_LINES:
+            long_modules.append(f"{name}: {n} lines")
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                length = node.end_lineno - node.lineno + 1
+                if length > MAX_FUNCTION_LINES:
+                    long_functions.append(f"{name}.{node.name}: {length} lines")
+    assert not long_modules, long_modules
+    assert not long_functions, long_functions

@@ -1,0 +1,159 @@
+"""The training CLI as a user drives it: bad input refused early with a message naming it,
+a SIGKILL at any point resumed, and the compilation cache."""
+
+from __future__ import annotations
+
+import csv
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import pytest
+from tiny import TINY_CLI
+
+from ttd3_jax import checkpoint as ckpt
+from ttd3_jax import runs
+from ttd3_jax.cache import default_compile_cache, use_compile_cache
+from ttd3_jax.train import main
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--num-envs", "0"], "num_envs must be an integer in"),
+        (
+            ["--total-transitions", "1000000000000000"],
+            r"total_transitions must be an integer in \[1, 2,000,000,000\]",
+        ),
+        (["--hp.lam", "inf"], "hp.lam must be a finite number"),
+        (["--hp.beta", "nan"], "hp.beta must be a finite number"),
+        (["--task.e-max", "-1"], "EnvConfig.e_max must be > 0"),
+        (["--task.obs-frame", "heading"], "obs_frame must be one of"),
+        (["--task.track", "spiral_rt"], "task.track must be 'train'"),
+        (
+            ["--preset", "mujoco", "--task.e-max", "1.5"],
+            r"--task.\* sets the quadrotor env; env 'hopper' has none",
+        ),
+        (["--preset", "quick"], r"--preset must be one of \('fast', 'fast_dpg', 'paper', 'mujoco'\)"),
+        (["--resume", "/nonexistent/run"], "not a ttd3_jax run directory"),
+        (
+            ["--resume", "/nonexistent/run", "--preset", "fast"],
+            "--resume continues the saved run spec; remove --preset",
+        ),
+        (["--resume", "/nonexistent/run", "--epochs", "3"], "remove --epochs 3"),
+        (["--resume", "/nonexistent/run", "--out", "x"], "remove --out"),
+    ],
+)
+def test_bad_input_is_refused_before_anything_compiles(argv, message, capsys):
+    try:
+        code = main(argv)
+    except SystemExit as e:  # tyro reports its own parse and validation errors, status 2
+        code = e.code
+    assert code == 2
+    err = capsys.readouterr().err
+    assert re.search(message, err), err
+    assert "Traceback" not in err
+
+
+def test_out_that_is_a_file_is_refused(tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    assert main([*TINY_CLI, "--out", str(blocker)]) == 2
+    assert "--out" in capsys.readouterr().err
+
+
+def test_task_e_max_big_is_refused_with_the_field_and_its_type(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--task.e-max", "big"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--task.e-max" in err and "FLOAT" in err.upper()
+
+
+def test_sigkill_then_resume_finishes_the_run(tmp_path):
+    """A run killed at an arbitrary point resumes from its last complete checkpoint."""
+    out = tmp_path / "runs"
+    cmd = [sys.executable, "-m", "ttd3_jax.train", *TINY_CLI, "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    deadline = time.time() + 300
+    run_dir = None
+    while time.time() < deadline and proc.poll() is None:
+        dirs = list(out.glob("*/checkpoints/1")) if out.exists() else []
+        if dirs:
+            run_dir = dirs[0].parent.parent
+            break
+        time.sleep(0.05)
+    assert run_dir is not None, (
+        proc.stdout.read().decode() if proc.poll() is not None else "no checkpoint in time"
+    )
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    mngr = ckpt.manager(str(run_dir))
+    last = ckpt.latest_epoch(mngr)
+    assert last is not None and last >= 1
+    mngr.close()
+    res = subprocess.run([sys.executable, "-m", "ttd3_jax.train", "--resume", str(run_dir)],
+                         capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert f"resumed {run_dir} at epoch {last}/4" in res.stdout
+    # the CLI uses $JAX_COMPILATION_CACHE_DIR (tests/conftest.py sets it) as its cache
+    assert f"XLA compilation cache: {os.environ['JAX_COMPILATION_CACHE_DIR']}" in res.stdout
+    assert [int(r["epoch"]) for r in runs.read_metrics(str(run_dir))] == [1, 2, 3, 4]
+    assert os.path.isfile(run_dir / "eval.json")
+
+
+def test_compile_cache_default_and_bad_directory(tmp_path, monkeypatch):
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "env"))
+    assert default_compile_cache() == str(tmp_path / "env")
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert default_compile_cache() == str(tmp_path / "xdg" / "ttd3_jax" / "xla")
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    with pytest.raises(ValueError, match="a_file.*cannot be created.*--compile-cache none"):
+        use_compile_cache(str(blocker / "cache"))
+    # an unwritable default only warns and turns the cache off (then back on for the suite)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(blocker))
+    try:
+        assert use_compile_cache() is None
+        assert not jax.config.jax_enable_compilation_cache
+    finally:
+        jax.config.update("jax_enable_compilation_cache", True)
+
+
+@pytest.mark.slow
+def test_cli_compile_cache_is_written_then_reused_with_identical_results(tmp_path):
+    """A second launch loads the first one's programs from --compile-cache DIR; the
+    results (all but the wall-clock columns) are identical."""
+    cache = tmp_path / "xla"
+    out = []
+    for i in range(2):
+        cmd = [
+            sys.executable,
+            "-m",
+            "ttd3_jax.train",
+            *TINY_CLI,
+            "--epochs",
+            "2",
+            "--total-transitions",
+            "512",
+        ]
+        cmd += ["--out", str(tmp_path / f"runs{i}"), "--compile-cache", str(cache)]
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+        assert res.returncode == 0, res.stdout + res.stderr
+        assert f"XLA compilation cache: {cache}" in res.stdout
+        if i == 0:
+            assert len(list(cache.iterdir())) > 0  # programs written
+        (metrics,) = (tmp_path / f"runs{i}").glob("*/metrics.csv")
+        with open(metrics) as fh:
+            out.append(
+                [
+                    {k: v for k, v in r.items() if k not in ("wall_s", "steps_per_s")}
+                    for r in csv.DictReader(fh)
+                ]
+            )
+    assert out[0] == out[1] and len(out[0]) == 2

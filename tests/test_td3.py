@@ -1,0 +1,350 @@
+"""The trainer's parts: config errors, noise schedules, replay buffer, networks, losses, and
+the pure training functions (one transition's path, seed vmap, sweeps, model-based actor)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from tiny import tiny
+
+from ttd3_jax import spec as sp
+from ttd3_jax.td3 import buffer as rb
+from ttd3_jax.td3 import noise as nz
+from ttd3_jax.td3 import normalize as nrm
+from ttd3_jax.td3 import trainer as T
+from ttd3_jax.td3.config import Hyper, TrainConfig, validate_hyper
+from ttd3_jax.td3.losses import actor_loss, critic_loss
+from ttd3_jax.td3.networks import init_params, make_networks, twin_q
+
+# --------------------------------------------------------------------------- config
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(batch_size=2048, buffer_size=1024), "batch_size"),
+        (dict(num_envs=0), "num_envs must be an integer in"),
+        (dict(epochs=-1), "epochs"),
+        (dict(algo="sac"), "algo"),
+        (dict(total_transitions=100), "total_transitions"),
+        (dict(total_transitions=10**15), r"total_transitions must be an integer in \[1, 2,000,000,000\]"),
+        (dict(warmup_transitions=10), "warmup_transitions"),
+        (dict(target_noise="shared"), "target_noise"),
+        (dict(model_horizon=-1), "model_horizon"),
+        (dict(model_horizon=50), "total_transitions"),
+        (dict(hidden=(32, 0)), "hidden"),
+        (dict(normalize_obs="yes"), "normalize_obs"),
+        (dict(num_envs=16.0), "num_envs must be an integer"),
+    ],
+)
+def test_train_config_errors_are_raised_at_construction(kw, match):
+    with pytest.raises(ValueError, match=match):
+        tiny(**kw)
+
+
+@pytest.mark.parametrize(
+    "field, value, match",
+    [
+        ("beta", 1.5, r"hp.beta must be a finite number in \[0, 1\]"),
+        ("gamma", 1.0, r"hp.gamma must be a finite number in \[0, 1\)"),
+        ("lr_critic", 0.0, "hp.lr_critic"),
+        ("lam", math.inf, "hp.lam must be a finite number"),
+        ("tau", math.nan, "hp.tau"),
+        ("sigma", -0.1, "hp.sigma"),
+        ("model_grad_clip", "big", "hp.model_grad_clip must be a finite number.*'big'"),
+    ],
+)
+def test_hyperparameter_errors(field, value, match):
+    with pytest.raises(ValueError, match=match):
+        validate_hyper(Hyper(**{field: value}))
+    with pytest.raises(ValueError, match=match):  # and the run spec checks its own
+        tiny(hp=Hyper(**{field: value}))
+
+
+@pytest.mark.parametrize("field, value", [("delta_reduce", "max"), ("t_unit", "hour"), ("r_range", "all")])
+def test_noise_config_errors(field, value):
+    with pytest.raises(ValueError, match=field):
+        nz.NoiseConfig(**{field: value})
+
+
+def test_loop_lengths_and_transitions_run():
+    c = TrainConfig(num_envs=16, total_transitions=16 * 40, warmup_transitions=100, batch_size=64, epochs=3)
+    assert c.warmup_steps == 7  # ceil(100 / 16)
+    assert c.steps_per_epoch == (40 - 7) // 3 == 11
+    assert c.transitions_run == (7 + 11 * 3) * 16
+    assert dataclasses.replace(c, buffer_size=1000).buffer_capacity == 1008  # a multiple of num_envs
+    assert dataclasses.replace(c, model_horizon=4, total_transitions=16 * 100).env_steps_per_step == 4
+
+
+# --------------------------------------------------------------------------- noise
+
+
+def test_time_attenuating_sigma_matches_formula():
+    hp = Hyper(beta=0.08, lam=0.01, u_max=1.0)
+    cfg = nz.NoiseConfig()
+    r = jnp.array([-1.0, -0.5, -0.25, 0.0])
+    ns = nz.init(hp, True)
+    assert float(ns.sigma) == 1.0  # Alg. 1 starts at u_max
+    out = nz.update(cfg, True, hp, ns, r, n_tr=30_000, n_upd=7, episode_length=3000)
+    delta = float(np.sum((r - r.min()) / (r.max() - r.min())))  # 0 + 0.5 + 0.75 + 1
+    expected = 0.08 * np.exp(-0.01 * 10.0) + 0.92 * np.exp(-delta)
+    np.testing.assert_allclose(float(out.sigma), expected, rtol=1e-6)
+    mean = nz.update(dataclasses.replace(cfg, delta_reduce="mean"), True, hp, ns, r, 30_000, 7, 3000)
+    np.testing.assert_allclose(float(mean.sigma), 0.08 * np.exp(-0.1) + 0.92 * np.exp(-delta / 4), rtol=1e-6)
+    per_step = nz.update(dataclasses.replace(cfg, t_unit="env_step"), True, hp, ns, r, 30_000, 7, 3000)
+    np.testing.assert_allclose(float(per_step.sigma), 0.92 * np.exp(-delta), rtol=1e-5)
+    per_update = nz.update(dataclasses.replace(cfg, t_unit="update"), True, hp, ns, r, 30_000, 7, 3000)
+    np.testing.assert_allclose(
+        float(per_update.sigma), 0.08 * np.exp(-0.07) + 0.92 * np.exp(-delta), rtol=1e-6
+    )
+
+
+def test_sigma_kept_when_rewards_are_flat_and_running_range():
+    hp, cfg = Hyper(), nz.NoiseConfig()
+    ns = nz.NoiseState(sigma=jnp.float32(0.3), r_min=jnp.float32(jnp.inf), r_max=jnp.float32(-jnp.inf))
+    flat = nz.update(cfg, True, hp, ns, jnp.full(8, -2.0), 1000, 1, 3000)
+    assert float(flat.sigma) == pytest.approx(0.3)
+    run_cfg = dataclasses.replace(cfg, r_range="running")
+    s1 = nz.update(run_cfg, True, hp, ns, jnp.array([-4.0, 0.0]), 0, 1, 3000)
+    s2 = nz.update(run_cfg, True, hp, s1, jnp.array([-1.0, -1.0]), 0, 2, 3000)
+    assert float(s2.r_min) == -4.0 and float(s2.r_max) == 0.0
+    # a flat batch is still normalised by the running range: δ = 2 * 0.75
+    np.testing.assert_allclose(float(s2.sigma), 0.08 + 0.92 * np.exp(-1.5), rtol=1e-6)
+
+
+def test_td3_keeps_sigma_constant_and_sigma_as_variance():
+    hp = Hyper(sigma=0.1)
+    ns = nz.init(hp, False)
+    assert float(ns.sigma) == pytest.approx(0.1)
+    assert float(
+        nz.update(nz.NoiseConfig(), False, hp, ns, jnp.arange(4.0), 10, 1, 10).sigma
+    ) == pytest.approx(0.1)
+    assert float(nz.std(nz.NoiseConfig(sigma_is_variance=True), jnp.float32(0.04))) == pytest.approx(0.2)
+    assert TrainConfig(algo="td3").time_attenuating is False and TrainConfig().time_attenuating
+
+
+# --------------------------------------------------------------------------- buffer, networks, losses
+
+
+def test_ring_buffer_insert_wraps_and_samples_filled_rows():
+    buf = rb.init(8, obs_size=2, action_size=1)
+
+    def batch(v):
+        n = 4
+        return rb.Transition(
+            obs=jnp.full((n, 2), v), action=jnp.full((n, 1), v), reward=jnp.arange(n) + v,
+            next_obs=jnp.full((n, 2), v), terminated=jnp.zeros(n), done=jnp.zeros(n),
+        )  # fmt: skip
+
+    buf = rb.insert(buf, batch(0.0))
+    assert int(buf.size) == 4 and int(buf.pos) == 4
+    s = rb.sample(buf, jax.random.PRNGKey(0), 256)
+    assert set(np.unique(np.asarray(s.reward))) <= {0.0, 1.0, 2.0, 3.0}
+    buf = rb.insert(rb.insert(buf, batch(10.0)), batch(20.0))  # wraps: overwrites rows 0-3
+    assert int(buf.size) == 8 and int(buf.pos) == 4
+    np.testing.assert_array_equal(buf.data.reward, [20, 21, 22, 23, 10, 11, 12, 13])
+    assert rb.transition_bytes(17, 4) == 4 * (2 * 17 + 4 + 3)
+
+
+def test_twin_critics_are_one_vmapped_apply_equal_to_two_separate_ones():
+    nets = make_networks(4, (16, 16))
+    _, critic = init_params(nets, jax.random.PRNGKey(0), 17, 4)
+    obs, act = jax.random.normal(jax.random.PRNGKey(1), (8, 17)), jnp.zeros((8, 4))
+    q = twin_q(nets, critic, obs, act)
+    assert q.shape == (2, 8)
+    for i in range(2):
+        p = jax.tree.map(lambda x, i=i: x[i], critic)
+        np.testing.assert_allclose(
+            q[i], nets.critic.apply(p, jnp.concatenate([obs, act], -1))[..., 0], rtol=1e-5, atol=1e-6
+        )
+    assert not np.allclose(q[0], q[1])  # two independently initialised critics
+
+
+def _batch(n=32, terminated=None):
+    k = jax.random.split(jax.random.PRNGKey(1), 3)
+    z = jnp.zeros(n)
+    return rb.Transition(
+        obs=jax.random.normal(k[0], (n, 17)), action=jax.random.uniform(k[1], (n, 4), minval=-1, maxval=1),
+        reward=jax.random.normal(k[2], (n,)), next_obs=jax.random.normal(k[0], (n, 17)) + 1.0,
+        terminated=z if terminated is None else terminated, done=z,
+    )  # fmt: skip
+
+
+def test_critic_target_is_the_td3_formula_and_stops_at_termination():
+    """y = r + γ (1 − terminated) min_i Q'_i(s', clip(π'(s') + clip(σ̃ξ, −c, c), −1, 1)): with
+    σ̃ = 0 the loss equals Σ_i mean (y − Q_i)² computed by hand, and a terminated row drops
+    its bootstrap."""
+    nets = make_networks(4, (16, 16))
+    actor, critic = init_params(nets, jax.random.PRNGKey(0), 17, 4)
+    hp, key = Hyper(gamma=0.9), jax.random.PRNGKey(2)
+    term = (jnp.arange(32) % 2).astype(jnp.float32)
+    b = _batch(terminated=term)
+    loss, q_mean = critic_loss(critic, nets, actor, critic, b, key, hp, 0.0)
+    a_next = jnp.clip(nets.actor.apply(actor, b.next_obs), -1, 1)
+    y = b.reward + 0.9 * (1 - term) * jnp.min(twin_q(nets, critic, b.next_obs, a_next), axis=0)
+    q = twin_q(nets, critic, b.obs, b.action)
+    assert float(loss) == pytest.approx(float(jnp.sum(jnp.mean((q - y) ** 2, -1))), rel=1e-5)
+    assert float(q_mean) == pytest.approx(float(jnp.mean(q[0])), rel=1e-5)
+    a_loss = actor_loss(actor, nets, critic, b.obs)
+    pi = nets.actor.apply(actor, b.obs)
+    assert float(a_loss) == pytest.approx(-float(jnp.mean(twin_q(nets, critic, b.obs, pi)[0])), rel=1e-5)
+
+
+def test_running_obs_stats_match_numpy():
+    x = np.random.default_rng(0).normal(3.0, 2.0, size=(300, 5)).astype(np.float32)
+    s = nrm.init(5)
+    for chunk in np.split(x, [7, 100, 101, 250]):
+        s = nrm.update(s, jnp.asarray(chunk))
+    np.testing.assert_allclose(s.mean, x.mean(0), rtol=1e-4)
+    np.testing.assert_allclose(nrm.std(s), x.std(0), rtol=1e-3)
+    z = nrm.apply(s, jnp.asarray(x))
+    np.testing.assert_allclose(np.mean(np.asarray(z), 0), 0.0, atol=1e-3)
+    assert np.array_equal(nrm.apply(None, x), x)
+
+
+# --------------------------------------------------------------------------- trainer
+
+
+def test_transitions_store_true_next_obs_and_terminated_apart_from_truncation():
+    s = tiny(warmup_transitions=16 * 150, total_transitions=16 * 200, buffer_size=16 * 256)
+    c, t = s.train, sp.trainer_for(s)
+    ts = jax.jit(t.init)(T.seed_keys(0, 1)[0], s.hp)
+    d = jax.device_get(ts.buffer.data)
+    n = int(ts.buffer.size)
+    assert n == c.warmup_steps * c.num_envs
+    # within one env's consecutive rows, next_obs of step i is obs of step i+1 unless it ended
+    obs = d.obs[:n].reshape(-1, c.num_envs, d.obs.shape[-1])
+    nxt = d.next_obs[:n].reshape(obs.shape)
+    term = d.terminated[:n].reshape(obs.shape[:2])
+    same = np.all(np.isclose(nxt[:-1], obs[1:]), axis=-1)
+    assert np.all(same | (term[:-1] > 0))
+    assert np.any(term > 0)  # random actions crash some episodes: stored as terminated
+    assert set(np.unique(term)) <= {0.0, 1.0}
+
+
+@pytest.mark.parametrize("horizon", [0, 4])
+def test_vmapped_seed_equals_seed_run_alone(horizon):
+    both, alone = tiny(num_seeds=2, seed=3, model_horizon=horizon), tiny(seed=4, model_horizon=horizon)
+    tb, ta = sp.trainer_for(both), sp.trainer_for(alone)
+    ts_b = jax.jit(jax.vmap(tb.init, in_axes=(0, None)))(T.seed_keys(3, 2), both.hp)
+    ts_a = jax.jit(jax.vmap(ta.init, in_axes=(0, None)))(T.seed_keys(4, 1), alone.hp)
+    for x, y in zip(jax.tree.leaves(ts_b.actor), jax.tree.leaves(ts_a.actor), strict=True):
+        np.testing.assert_array_equal(x[1], y[0])
+    assert any(not np.allclose(x[0], x[1]) for x in jax.tree.leaves(ts_b.actor))  # seeds differ
+    _, mb = jax.jit(jax.vmap(tb.epoch, in_axes=(0, None)))(ts_b, both.hp)
+    _, ma = jax.jit(jax.vmap(ta.epoch, in_axes=(0, None)))(ts_a, alone.hp)
+    for k in ("critic_loss", "actor_loss", "q_mean", "sigma", "env_steps"):
+        np.testing.assert_allclose(mb[k][1], ma[k][0], rtol=1e-4, atol=1e-6, err_msg=k)
+
+
+def test_sweep_over_hyperparameters_is_one_vmapped_program():
+    s = tiny(epochs=1)
+    t = sp.trainer_for(s)
+    hps = Hyper(lr_critic=jnp.array([1e-4, 1e-3]), beta=jnp.array([0.05, 0.2]))
+    none = {f.name: None for f in dataclasses.fields(Hyper)}
+    hp_axes = Hyper(**{**none, "lr_critic": 0, "beta": 0})  # sweep two leaves, share the rest
+    keys = jnp.stack([T.seed_keys(0, 1)[0]] * 2)
+    ts, m, ev = jax.jit(jax.vmap(t.train, in_axes=(0, hp_axes)))(keys, hps)
+    assert m["critic_loss"].shape == (2, 1)
+    assert not np.allclose(m["critic_loss"][0], m["critic_loss"][1])
+    assert ev["spiral_tracking_error"].shape == (2, 1)
+    # each swept learning rate reached its critic optimiser
+    np.testing.assert_allclose(ts.critic_opt.hyperparams["learning_rate"], [1e-4, 1e-3], rtol=1e-6)
+
+
+def test_normalised_run_stores_stats_and_evaluates():
+    s = tiny(normalize_obs=True)
+    c, t = s.train, sp.trainer_for(s)
+    ts = jax.jit(t.init)(jax.random.PRNGKey(0), s.hp)
+    n0 = float(ts.obs_stats.count)
+    assert n0 == (c.warmup_steps + 1) * c.num_envs
+    ts, m = jax.jit(t.epoch)(ts, s.hp)
+    assert float(ts.obs_stats.count) == n0 + c.steps_per_epoch * c.num_envs
+    assert np.isfinite(float(jax.jit(t.evaluate)(ts)["spiral_tracking_error"]))
+
+
+# --------------------------------------------------------------------------- model-based actor
+
+
+@pytest.fixture(scope="module")
+def model_trainer():
+    """A tiny model-based trainer (H = 3) and its state after warm-up, shared by the tests
+    below (one init compile)."""
+    s = tiny(model_horizon=3, epochs=1, total_transitions=16 * (8 + 3 * 6))
+    t = sp.trainer_for(s)
+    return s, t, jax.jit(t.init)(T.seed_keys(0, 1)[0], s.hp)
+
+
+def test_model_rollout_stores_its_transitions_in_env_order(model_trainer):
+    """With ``model_horizon`` H each vector step adds H·num_envs transitions; row r + num_envs
+    is still env r's next step (next_obs of one row is the obs of that row unless it ended)."""
+    s, t, ts0 = model_trainer
+    c = s.train
+    ts, m = jax.jit(t.epoch)(ts0, s.hp)
+    added = c.steps_per_epoch * c.model_horizon * c.num_envs
+    assert c.steps_per_epoch == 6 and int(ts.n_tr) == int(ts0.n_tr) + added
+    assert float(m["env_steps"]) == int(ts0.n_tr) + added
+    d, n = jax.device_get(ts.buffer.data), int(ts.buffer.size)
+    assert n == int(ts.n_tr)
+    obs = d.obs[:n].reshape(-1, c.num_envs, d.obs.shape[-1])
+    nxt, done = d.next_obs[:n].reshape(obs.shape), d.done[:n].reshape(obs.shape[:2])
+    same = np.all(np.isclose(nxt[:-1], obs[1:]), axis=-1)
+    assert np.all(same | (done[:-1] > 0))
+    assert np.isfinite(float(m["actor_loss"]))
+
+
+def test_model_actor_loss_is_the_rollout_return_and_its_gradient_matches_finite_differences(model_trainer):
+    """The model-based actor objective equals −mean Σ γ^k r_k of the same rollout stepped
+    by hand (no exploration noise), and its gradient along a random direction matches a
+    central difference."""
+    s, t, ts = model_trainer
+    hp = s.hp
+    ts = ts.replace(noise=ts.noise.replace(sigma=jnp.zeros_like(ts.noise.sigma)))
+    key = jax.random.PRNGKey(7)
+    value_grad = jax.jit(jax.value_and_grad(lambda a: T.model_loss(t.setup, a, ts, hp, key)[0]))
+    loss, g = value_grad(ts.actor)
+    st, ret, alive = ts.env_state, jnp.zeros(s.train.num_envs), jnp.ones(s.train.num_envs)
+    step = jax.jit(jax.vmap(t.env.env.step))
+    for k in range(s.train.model_horizon):
+        st = step(st, T.act(t.setup, ts.actor, ts.obs_stats, st.obs))
+        ret = ret + alive * hp.gamma**k * hp.reward_scale * st.reward
+        alive = alive * (1.0 - st.done)
+    assert float(jnp.sum(alive)) == s.train.num_envs  # no episode ends this early
+    assert float(loss) == pytest.approx(-float(jnp.mean(ret)), rel=1e-5)
+
+    leaves, tree = jax.tree.flatten(ts.actor)
+    ks = jax.random.split(jax.random.PRNGKey(3), len(leaves))
+    d = jax.tree.unflatten(tree, [jax.random.normal(k, x.shape) for k, x in zip(ks, leaves, strict=True)])
+    eps = 1e-3
+    shift = lambda e: jax.tree.map(lambda x, y: x + e * y, ts.actor, d)  # noqa: E731
+    fd = (float(value_grad(shift(eps))[0]) - float(value_grad(shift(-eps))[0])) / (2 * eps)
+    an = sum(float(jnp.sum(x * y)) for x, y in zip(jax.tree.leaves(g), jax.tree.leaves(d), strict=True))
+    assert an == pytest.approx(fd, rel=0.03), (an, fd)
+    assert abs(an) > 1e-4  # a real gradient, not zero
+
+
+def test_one_transition_through_the_update_functions():
+    """``update`` is the critic step, the σ update and (every d-th update) the actor step:
+    its results equal calling ``critic_update`` / ``actor_update`` by hand on the same batch."""
+    s = tiny()  # the paper's actor update
+    setup = sp.trainer_for(s).setup
+    hp, key = s.hp, jax.random.PRNGKey(5)
+    ts = jax.jit(sp.trainer_for(s).init)(T.seed_keys(0, 1)[0], hp)
+    out, (c_loss, a_loss, _) = jax.jit(lambda ts: T.update(setup, ts, hp, key, jnp.asarray(1)))(ts)
+    k_batch, k_target = jax.random.split(key)
+    batch = rb.sample(ts.buffer, k_batch, s.train.batch_size)
+    batch = batch.replace(
+        obs=nrm.apply(ts.obs_stats, batch.obs), next_obs=nrm.apply(ts.obs_stats, batch.next_obs)
+    )
+    by_hand, loss, _ = T.critic_update(setup, ts, hp, batch, k_target)
+    by_hand, a_loss_hand = T.actor_update(setup, by_hand, hp, batch)
+    assert float(c_loss) == pytest.approx(float(loss), rel=1e-6)
+    assert float(a_loss) == pytest.approx(float(a_loss_hand), rel=1e-6)
+    for x, y in zip(jax.tree.leaves(out.actor), jax.tree.leaves(by_hand.actor), strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-7)
+    assert int(out.n_upd) == int(ts.n_upd) + 1 and float(out.noise.sigma) < 1.0  # σ moved from u_max

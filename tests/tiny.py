@@ -1,0 +1,29 @@
+"""A run spec that trains in seconds, shared by the tests (not a test module)."""
+
+from __future__ import annotations
+
+from ttd3_jax import spec as sp
+
+
+def tiny(**changes) -> sp.RunSpec:
+    """``fast_dpg`` at a few seconds of training: 16 envs, 2 epochs of 16 vector steps, 32-32
+    networks; ``changes`` are RunSpec or TrainConfig fields (:func:`ttd3_jax.spec.replace`)."""
+    base = dict(
+        num_envs=16,
+        total_transitions=16 * 40,
+        warmup_transitions=16 * 8,
+        buffer_size=16 * 64,
+        batch_size=64,
+        updates_per_step=2,
+        epochs=2,
+        hidden=(32, 32),
+    )
+    return sp.preset("fast_dpg", **{**base, **changes})
+
+
+# the same run on the command line, with a 2-step model-based actor (the CLI's default preset)
+TINY_CLI = [
+    "--num-envs", "16", "--total-transitions", "1024", "--warmup-transitions", "128", "--buffer-size", "1024",
+    "--batch-size", "64", "--updates-per-step", "2", "--epochs", "4", "--hidden", "32", "32",
+    "--model-horizon", "2",
+]  # fmt: skip

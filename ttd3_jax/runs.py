@@ -1,0 +1,192 @@
+"""A run directory on disk: its spec, metrics, checkpoints and selected policies.
+
+``runs/<env>-<algo>-s<seed>-<time>/`` holds ``config.json`` (the whole
+:class:`~ttd3_jax.spec.RunSpec`), ``metrics.csv`` (one row per epoch and seed),
+``checkpoints/`` (orbax, the whole train state), ``best/`` (each seed's policy selected on
+the validation tracks), ``eval.json`` and ``learning_curve.png``.  Everything that reads a
+run rebuilds it from ``config.json`` alone.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime
+import json
+import os
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+
+from ttd3_jax import checkpoint as ckpt
+from ttd3_jax import spec as sp
+from ttd3_jax.control.closed_loop import policy_controller
+from ttd3_jax.control.evaluator import Build, index
+from ttd3_jax.sharding import per_seed
+from ttd3_jax.sim.config import EnvConfig
+from ttd3_jax.td3 import normalize as nrm
+from ttd3_jax.td3.trainer import Trainer, act, initial_actor, seed_keys
+
+CONFIG = "config.json"
+
+
+def check_out_dir(out: str) -> None:
+    """Refuse an ``--out`` that is a file or cannot be written, before anything compiles."""
+    path = os.path.abspath(out)
+    probe = path
+    while not os.path.exists(probe):
+        probe = os.path.dirname(probe)
+    if not os.path.isdir(probe):
+        raise ValueError(f"--out {out!r}: {probe!r} is a file, not a directory")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {out!r}: {probe!r} is not writable; pass --out DIR with a writable DIR")
+
+
+def new_run_dir(out: str, spec: sp.RunSpec) -> str:
+    """A fresh ``out/<env>-<algo>-s<seed>-<time>`` directory, with ``config.json`` in it."""
+    check_out_dir(out)
+    stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+    base = os.path.join(out, f"{spec.env}-{spec.algo}-s{spec.seed}-{stamp}")
+    path, i = base, 1
+    while os.path.exists(path):
+        path, i = f"{base}-{i}", i + 1
+    os.makedirs(path)
+    with open(os.path.join(path, CONFIG), "w") as fh:
+        json.dump(sp.to_dict(spec), fh, indent=2)
+    return path
+
+
+def load_spec(run_dir: str) -> sp.RunSpec:
+    """A run's spec from its ``config.json``; errors name the file and what is wrong."""
+    path = os.path.join(run_dir, CONFIG)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"no {CONFIG} in {run_dir!r}: not a ttd3_jax run directory")
+    try:
+        with open(path) as fh:
+            d = json.load(fh)
+    except (ValueError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path} is not valid JSON ({e}); the file is damaged") from None
+    try:
+        return sp.from_dict(d)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{path}: {e}") from None
+
+
+class CsvLog:
+    """metrics.csv, one row per (epoch, seed); on resume, rows past the checkpoint are dropped."""
+
+    def __init__(self, path: str, keep_through_epoch: int | None = None):
+        self.path = path
+        self.fields: list[str] | None = None
+        if keep_through_epoch is not None and os.path.exists(path):
+            with open(path) as fh:
+                rows = [r for r in csv.DictReader(fh) if int(r["epoch"]) <= keep_through_epoch]
+            if rows:
+                self.fields = list(rows[0].keys())
+            with open(path, "w", newline="") as fh:
+                if self.fields:
+                    w = csv.DictWriter(fh, self.fields)
+                    w.writeheader()
+                    w.writerows(rows)
+        elif os.path.exists(path):
+            os.remove(path)
+
+    def write(self, rows: list[dict]) -> None:
+        new = self.fields is None
+        if new:
+            self.fields = list(rows[0].keys())
+        with open(self.path, "a", newline="") as fh:
+            w = csv.DictWriter(fh, self.fields)
+            if new:
+                w.writeheader()
+            w.writerows(rows)
+
+
+def read_metrics(run_dir: str) -> list[dict]:
+    with open(os.path.join(run_dir, "metrics.csv")) as fh:
+        return [{k: float(v) for k, v in r.items()} for r in csv.DictReader(fh)]
+
+
+def select_best(run_dir: str, spec: sp.RunSpec, epoch: int, ev, ts) -> None:
+    """Keep each seed's policy with the lowest validation error so far (spec T8: selection
+    on the 10 validation tracks, never on the test tracks) in ``run_dir/best/``."""
+    record = ckpt.best_record(run_dir)
+    for i in range(spec.num_seeds):
+        seed, v = spec.seed + i, float(np.asarray(ev["val_tracking_error"])[i])
+        if np.isfinite(v) and (seed not in record or v < record[seed]["val_tracking_error"]):
+            stats = index(ts.obs_stats, i) if spec.train.normalize_obs else None
+            ckpt.save_policy(run_dir, seed, epoch, v, {"actor": index(ts.actor, i), "obs_stats": stats})
+
+
+def selected_policies(run_dir: str) -> list[dict]:
+    """Per seed: the epoch selected on the validation tracks and that epoch's test figures
+    (from metrics.csv).  Empty for runs without ``best/``."""
+    record, rows = ckpt.best_record(run_dir), read_metrics(run_dir)
+    keys = ("spiral_tracking_error", "los_tracking_error", "spiral_crashed", "los_crashed")
+    out = []
+    for seed, b in sorted(record.items()):
+        row = next(r for r in rows if int(r["epoch"]) == b["epoch"] and int(r["seed"]) == seed)
+        out.append(dict(seed=seed, epoch=b["epoch"], val_tracking_error=b["val_tracking_error"],
+                        **{k: float(row[k]) for k in keys}))  # fmt: skip
+    return out
+
+
+class LoadedState(NamedTuple):
+    spec: sp.RunSpec
+    trainer: Trainer
+    state: Any  # TrainState with the seed axis in front, on the host
+    epoch: int
+    skipped: list  # [(epoch, reason)] of newer checkpoints that did not load
+
+
+def load_train_state(run_dir: str, epoch: int | None = None) -> LoadedState:
+    """A run's checkpoint ``epoch`` (default: the newest that loads)."""
+    spec = load_spec(run_dir)
+    trainer = sp.trainer_for(spec)
+    keys = seed_keys(spec.seed, spec.num_seeds)
+    like = jax.eval_shape(per_seed(trainer.init, spec.num_seeds, (0, None)), keys, spec.hp)
+    epoch, state, skipped = ckpt.restore_newest(run_dir, like, epoch)
+    return LoadedState(spec, trainer, state, epoch, skipped)
+
+
+class LoadedRun(NamedTuple):
+    spec: sp.RunSpec
+    env_config: EnvConfig  # the run's (training) env config
+    epoch: int | dict  # the checkpoint's epoch, or {seed: epoch} of the selected policies
+    build: Build  # theta = (actor params, obs stats or None) -> policy Controller
+    thetas: list  # [(seed, theta)] for every seed of the run
+    skipped: list  # [(epoch, reason)] of newer checkpoints that did not load
+
+
+def load_run(run_dir: str, epoch: int | None = None, best: bool = False) -> LoadedRun:
+    """A quadrotor run's checkpoint ``epoch`` (default: the newest that loads) as policy
+    controllers, one per seed, with the env config the run trained on (the policy must see
+    the observation layout it was trained with).  ``best``: instead, each seed's policy
+    selected on the validation tracks during training (``run_dir/best/``)."""
+    spec = load_spec(run_dir)
+    if not spec.is_quadrotor:
+        raise ValueError(f"{run_dir!r} is a {spec.env!r} run; only quadrotor runs can be evaluated here")
+    setup = sp.trainer_for(spec).setup
+
+    def build(theta):
+        actor, stats = theta
+        return policy_controller(lambda obs: act(setup, actor, stats, obs))
+
+    seeds = range(spec.seed, spec.seed + spec.num_seeds)
+    if best:
+        record = ckpt.best_record(run_dir)
+        missing = [s for s in seeds if s not in record]
+        if missing:
+            raise FileNotFoundError(
+                f"no selected policy for seed(s) {missing} in {run_dir!r} (best/best.json)"
+            )
+        stats = nrm.init(setup.env.obs_size) if spec.train.normalize_obs else None
+        like = {"actor": initial_actor(setup, jax.random.PRNGKey(0)), "obs_stats": stats}
+        policies = [ckpt.load_policy(run_dir, s, like) for s in seeds]
+        thetas = [(s, (p["actor"], p["obs_stats"])) for s, p in zip(seeds, policies, strict=True)]
+        return LoadedRun(spec, spec.task, {s: record[s]["epoch"] for s in seeds}, build, thetas, [])
+    loaded = load_train_state(run_dir, epoch)
+    st = loaded.state
+    thetas = [(s, (index(st.actor, i), index(st.obs_stats, i) if spec.train.normalize_obs else None))
+              for i, s in enumerate(seeds)]  # fmt: skip
+    return LoadedRun(spec, spec.task, loaded.epoch, build, thetas, loaded.skipped)

@@ -1,0 +1,179 @@
+"""The tracking environment's static configuration, its presets and command-line overrides.
+
+:class:`EnvConfig` holds every choice of the environment (units in comments); it is
+validated on construction, so a bad value fails before anything compiles.  Build the
+documented presets with :func:`make_config`; change fields with ``dataclasses.replace``.
+docs/paper-notes.md gives the reading of the paper behind each default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim.dynamics import QuadParams, validate_params
+
+TRACK_MODES = ("train", "validation", "spiral_rt", "los_rt")
+ERR_REFS = ("current", "next")
+ERR_COSTS = ("paper", "squared")
+OBS_FRAMES = ("world", "track")
+PRESETS = ("paper", "practical")
+CRASH_GAMMA = 0.99  # the discount the derived crash penalty is sized for (spec R4)
+# the fields EnvConfig.for_eval sets, and the episode length it keeps (keep them together)
+EVAL_PROTOCOL_FIELDS = ("track", "los_seed", "randomize_init", "terminate", "wind_sigma",
+                        "obs_noise_pos", "obs_noise_vel", "obs_noise_quat", "episode_steps")  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    """Static environment configuration (units in comments). Validated on construction."""
+
+    # time
+    dt: float = 1e-3  # s, physics (RK4) step
+    episode_steps: int = 3000  # physics steps per episode (3 s)
+    action_repeat: int = 1  # physics steps per control step (T1, T9)
+    # vehicle and integrator (D4, D5, D7)
+    quad: QuadParams = QuadParams()
+    rk4_substeps: int = 1
+    renormalize: bool = True
+    canonical_q_obs: bool = True  # observe q with qw >= 0
+    # observation and action (O1, O2)
+    err_ref: str = "current"
+    lookahead_k: int = 1  # physics steps ahead for the observed reference point
+    obs_frame: str = "world"  # "track": positions relative to p_d,k (translation invariant)
+    hover_centered_thrust: bool = False  # a0 = 0 means hover thrust
+    # reward and termination (R1-R4)
+    err_cost: str = "paper"
+    rho1: float = 1.0
+    rho2: float = 0.01
+    effort_weights: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)  # diag Ω
+    effort_hover_relative: bool = False  # penalise (a - a_hover) instead of a
+    terminate: bool = True
+    e_max: float = 2.0  # m
+    # reward of a crash; None: rho1 r_e(e_max) action_repeat / (1 - 0.99), 400 for the paper
+    crash_penalty: float | None = None
+    # tracks and initial state (T1-T8, R5)
+    track: str = "train"  # one of TRACK_MODES
+    los_seed: int = 0  # LOS-RT test instance when track == "los_rt"
+    tracks: tr.TrackConfig = tr.TrackConfig()
+    randomize_init: bool = True
+    init_pos: float = 0.1  # m, ± per axis around p_d(0)
+    init_vel: float = 0.2  # m/s, ± per axis
+    init_tilt_deg: float = 10.0  # deg, max tilt about a random horizontal axis
+    init_yaw_deg: float = 15.0  # deg, ± yaw
+    # disturbances (O3)
+    wind_sigma: float = 0.0  # m/s^2, stationary std of the OU acceleration
+    wind_tau: float = 0.5  # s, OU correlation time
+    obs_noise_pos: float = 0.0  # m, std
+    obs_noise_vel: float = 0.0  # m/s, std
+    obs_noise_quat: float = 0.0  # std on each quaternion component (then renormalised)
+    # robustness evaluation (not in the paper)
+    action_delay: int = 0  # control steps between an action and its application (0 or 1)
+    thrust_map_mass: float | None = None  # kg: mass whose hover thrust the action map assumes
+    #   under hover_centered_thrust (None = quad.mass); set to the nominal mass when quad.mass
+    #   is changed, so that a mass error stays unknown to the action map (and the controller)
+
+    def __post_init__(self):
+        _validate(self)
+
+    # derived quantities -------------------------------------------------------------
+    @property
+    def control_dt(self) -> float:
+        """Seconds per env step."""
+        return self.dt * self.action_repeat
+
+    @property
+    def episode_length(self) -> int:
+        """Env (control) steps per episode."""
+        return self.episode_steps // self.action_repeat
+
+    @property
+    def horizon_steps(self) -> int:
+        """Physics steps at which a reference point may be read."""
+        return self.episode_steps + self.lookahead_k + 2
+
+    @property
+    def crash_cost(self) -> float:
+        """The reward a crash costs: ``crash_penalty``, or by default what staying at
+        ``e_max`` would cost for ever, ρ₁ r_e(e_max) · action_repeat / (1 − 0.99)."""
+        if self.crash_penalty is not None:
+            return self.crash_penalty
+        e = self.e_max
+        return self.rho1 * (e if e * e <= 1 else e * e) * self.action_repeat / (1 - CRASH_GAMMA)
+
+    def for_eval(self, track: str, los_seed: int = 0, wind_sigma: float = 0.0) -> EnvConfig:
+        """The evaluation protocol (spec §2.5): fixed track, start on p_d(0) at rest and
+        level, no early termination, no observation noise, optional wind.  It sets the
+        fields in ``EVAL_PROTOCOL_FIELDS`` (``episode_steps`` stays: 3000, the paper's)."""
+        quiet = dict(
+            randomize_init=False, terminate=False, obs_noise_pos=0.0, obs_noise_vel=0.0, obs_noise_quat=0.0
+        )
+        return dataclasses.replace(self, track=track, los_seed=los_seed, wind_sigma=wind_sigma, **quiet)
+
+
+def _number(c: EnvConfig, name: str) -> float:
+    v = getattr(c, name)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ValueError(f"EnvConfig.{name} must be a finite number, got {v!r} ({type(v).__name__})")
+    return v
+
+
+def _validate(c: EnvConfig) -> None:
+    """Raise ``ValueError`` naming the bad field, its value and what is allowed."""
+    for name in ("dt", "e_max", "wind_tau", "rho1"):
+        if _number(c, name) <= 0:
+            raise ValueError(f"EnvConfig.{name} must be > 0, got {getattr(c, name)!r}")
+    for name in ("episode_steps", "action_repeat", "rk4_substeps", "lookahead_k"):
+        v = getattr(c, name)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ValueError(f"EnvConfig.{name} must be an integer >= 1, got {v!r}")
+    for name in ("rho2", "init_pos", "init_vel", "init_tilt_deg", "init_yaw_deg", "wind_sigma",
+                 "obs_noise_pos", "obs_noise_vel", "obs_noise_quat", "los_seed"):  # fmt: skip
+        if _number(c, name) < 0:
+            raise ValueError(f"EnvConfig.{name} must be >= 0, got {getattr(c, name)!r}")
+    if c.crash_penalty is not None and _number(c, "crash_penalty") < 0:
+        raise ValueError(f"EnvConfig.crash_penalty must be >= 0 or None, got {c.crash_penalty!r}")
+    if c.thrust_map_mass is not None and _number(c, "thrust_map_mass") <= 0:
+        raise ValueError(f"EnvConfig.thrust_map_mass must be > 0 or None, got {c.thrust_map_mass!r}")
+    if isinstance(c.action_delay, bool) or c.action_delay not in (0, 1):
+        raise ValueError(f"EnvConfig.action_delay must be 0 or 1 (control steps), got {c.action_delay!r}")
+    for name, allowed in (("err_ref", ERR_REFS), ("err_cost", ERR_COSTS), ("obs_frame", OBS_FRAMES),
+                          ("track", TRACK_MODES)):  # fmt: skip
+        if getattr(c, name) not in allowed:
+            raise ValueError(f"EnvConfig.{name} must be one of {allowed}, got {getattr(c, name)!r}")
+    for name in ("renormalize", "canonical_q_obs", "hover_centered_thrust", "effort_hover_relative",
+                 "terminate", "randomize_init"):  # fmt: skip
+        if not isinstance(getattr(c, name), bool):
+            raise ValueError(f"EnvConfig.{name} must be true or false, got {getattr(c, name)!r}")
+    if c.episode_steps % c.action_repeat:
+        raise ValueError(
+            f"EnvConfig.episode_steps ({c.episode_steps}) must be a multiple of action_repeat "
+            f"({c.action_repeat})"
+        )
+    w = c.effort_weights
+    if len(w) != 4 or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not x >= 0 for x in w):
+        raise ValueError(f"EnvConfig.effort_weights must be 4 numbers >= 0, got {w!r}")
+    if not isinstance(c.quad, QuadParams):
+        raise ValueError(f"EnvConfig.quad must be a QuadParams, got {type(c.quad).__name__}")
+    validate_params(c.quad)
+    if not isinstance(c.tracks, tr.TrackConfig):
+        raise ValueError(f"EnvConfig.tracks must be a TrackConfig, got {type(c.tracks).__name__}")
+
+
+def make_config(preset: str = "paper", **overrides) -> EnvConfig:
+    """A named, documented configuration, with ``overrides`` (EnvConfig fields) on top.
+
+    ``paper``: 1 kHz control exactly as published (spec defaults), trained with an OU
+    wind of 0.2 m/s^2.  ``practical``: 10 physics steps per action and a 50 ms
+    look-ahead so that γ = 0.99 spans about 1 s (spec T9); positions observed
+    relative to the current reference point (``obs_frame="track"``); episodes end
+    1 m off the track, with the R4 penalty for that distance (1000).
+    """
+    if preset == "paper":
+        base = dict(wind_sigma=0.2)
+    elif preset == "practical":
+        base = dict(wind_sigma=0.2, action_repeat=10, lookahead_k=50, obs_frame="track", e_max=1.0)
+    else:
+        raise ValueError(f"unknown env preset {preset!r}; allowed: {PRESETS}")
+    return EnvConfig(**{**base, **overrides})

@@ -1,0 +1,369 @@
+"""Quadrotor trajectory-tracking environment with the Brax ``Env`` API (spec §2.2).
+
+One control step (``env.step``) applies a normalised action ``a ∈ [-1, 1]^4`` for
+``action_repeat`` physics steps of ``dt`` seconds (one 1 ms RK4 step in the ``paper``
+preset); the configuration is :class:`~ttd3_jax.sim.config.EnvConfig`.
+
+Observation at physics step k (17-D, raw units, O1)::
+
+    [p_k (3, m), v_k (3, m/s), q_k (4, qw>=0), p_d,k+L (3, m), p_d,k+L - p_k (3, m),
+     ||p_d,k' - p_k|| (1, m)]          (+ ω_k (3, rad/s) for the first_order/torque models)
+
+with L = ``lookahead_k`` (1 in the paper) and k' = k (``err_ref="current"``) or k+1.
+``obs_frame="track"`` moves the origin of the two absolute positions to p_d,k.
+Reward per physics step, with e' = ||p_d,k+1 - p_k+1|| after the step (R1-R3)::
+
+    r = -rho1 * r_e(e') - rho2 * aᵀ Ω a,   r_e(e) = e if e² <= 1 else e²
+
+summed over the ``action_repeat`` physics steps.  An episode terminates (crash)
+when e' > ``e_max`` or the state is not finite, with reward ``-crash_cost``,
+and is truncated (``info["truncation"] = 1``) after ``episode_steps`` physics steps.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+import math
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+# mujoco.mjx (imported by brax) prints "Failed to import warp" when the optional
+# GPU package is absent; keep that out of our CLI output.
+with contextlib.redirect_stdout(io.StringIO()):
+    from brax.envs.base import Env, State
+
+from ttd3_jax.sim import rng
+from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim.config import EnvConfig, make_config
+from ttd3_jax.sim.dynamics import QuadState, quat_from_axis_angle, quat_mul, rk4_step
+
+
+def error_cost(cfg: EnvConfig, e: jax.Array) -> jax.Array:
+    """r_e(e) of eq. 3 (``err_cost="paper"``) or e² (``"squared"``); e in m."""
+    if cfg.err_cost == "squared":
+        return e * e
+    return jnp.where(e * e <= 1.0, e, e * e)
+
+
+def _thrust_range(cfg: EnvConfig):
+    q = cfg.quad
+    hover = q.hover_thrust
+    if cfg.thrust_map_mass is not None and q.thrust_units == "newton":
+        hover = q.gravity * cfg.thrust_map_mass
+    return q.thrust_min, q.thrust_max, hover
+
+
+def action_to_control(cfg: EnvConfig, a: jax.Array) -> jax.Array:
+    """Normalised action (..., 4) in [-1, 1] -> physical control ``[thrust, ω_cmd]`` (O2).
+
+    Default: thrust = f_min + (a0 + 1)/2 (f_max - f_min); rates affine onto
+    [rate_min, rate_max].  ``hover_centered_thrust`` maps a0 = 0 to the hover thrust.
+    """
+    lo, hi, hover = _thrust_range(cfg)
+    a0 = a[..., 0]
+    if cfg.hover_centered_thrust:
+        f = jnp.where(a0 >= 0, hover + a0 * (hi - hover), hover + a0 * (hover - lo))
+    else:
+        f = lo + 0.5 * (a0 + 1.0) * (hi - lo)
+    rlo, rhi = cfg.quad.rate_min, cfg.quad.rate_max
+    w = rlo + 0.5 * (a[..., 1:] + 1.0) * (rhi - rlo)
+    return jnp.concatenate([f[..., None], w], -1)
+
+
+def control_to_action(cfg: EnvConfig, u: jax.Array) -> jax.Array:
+    """Inverse of :func:`action_to_control` (for controllers with physical outputs)."""
+    lo, hi, hover = _thrust_range(cfg)
+    f = u[..., 0]
+    if cfg.hover_centered_thrust:
+        a0 = jnp.where(f >= hover, (f - hover) / (hi - hover), (f - hover) / (hover - lo))
+    else:
+        a0 = 2.0 * (f - lo) / (hi - lo) - 1.0
+    rlo, rhi = cfg.quad.rate_min, cfg.quad.rate_max
+    aw = 2.0 * (u[..., 1:] - rlo) / (rhi - rlo) - 1.0
+    return jnp.concatenate([a0[..., None], aw], -1)
+
+
+def hover_action(cfg: EnvConfig) -> jax.Array:
+    """Normalised action that holds hover (a0 = 0.4715 with the paper's numbers).  With
+    ``thrust_map_mass`` set: the hover action of that (nominal) mass."""
+    u = jnp.array([_thrust_range(cfg)[2], 0.0, 0.0, 0.0])
+    return control_to_action(cfg, u)
+
+
+@struct.dataclass
+class TrackingState:
+    """What the simulator carries between steps (Brax ``State.pipeline_state``)."""
+
+    quad: QuadState
+    k: jax.Array  # int32, physics step index
+    track: tr.Track
+    wind: jax.Array  # (3,) m/s^2, OU acceleration disturbance
+    key: jax.Array  # PRNG key for wind and observation noise
+    ref_next: jax.Array  # (3,) m, p_d(k+1), cached by ``observe`` for the next reward
+
+
+@struct.dataclass
+class DelayedTrackingState(TrackingState):
+    """The state of an env with ``action_delay = 1``.  A subclass, so that undelayed envs
+    (and the checkpoints of their training runs) keep the layout of :class:`TrackingState`."""
+
+    prev_action: jax.Array  # (4,) action the next step applies (the hover action at reset)
+
+
+class TrackingEnv(Env):
+    """Quadrotor trajectory tracking; ``reset(rng) -> State``, ``step(state, a) -> State``.
+
+    Works with Brax's ``VmapWrapper``, ``EpisodeWrapper`` and ``AutoResetWrapper``.
+    (Brax's auto-reset replays each env's first reset state, hence its first track.)
+    """
+
+    def __init__(self, config: EnvConfig | None = None, **overrides):
+        config = config or make_config("paper")
+        if overrides:
+            config = dataclasses.replace(config, **overrides)
+        self.config = config
+        c = config
+        if c.track in ("train", "validation"):
+            self._n_seg = tr.train_num_segments(c.horizon_steps, c.dt)
+        else:
+            self._n_seg = tr.num_segments_for(c.horizon_steps, c.tracks.los_segment_steps)
+        self._effort_w = tuple(float(w) for w in c.effort_weights)
+        self._rates_in_obs = c.quad.rate_model != "instant"
+
+    # Brax Env interface ----------------------------------------------------------------
+    @property
+    def observation_size(self) -> int:
+        return 20 if self._rates_in_obs else 17
+
+    @property
+    def action_size(self) -> int:
+        return 4
+
+    @property
+    def backend(self) -> str:
+        return "jax"
+
+    @property
+    def dt(self) -> float:
+        """Seconds per env step."""
+        return self.config.control_dt
+
+    @property
+    def episode_length(self) -> int:
+        return self.config.episode_length
+
+    @property
+    def num_segments(self) -> int:
+        """Static segment-table size of this env's tracks."""
+        return self._n_seg
+
+    def reset(self, rng: jax.Array) -> State:
+        """New episode: a track drawn per ``config.track`` and an initial state (R5)."""
+        k_track, k_rest = jax.random.split(rng)
+        return self.reset_with_track(k_rest, self.sample_track(k_track))
+
+    def sample_track(self, rng: jax.Array) -> tr.Track:
+        """The track an episode uses under ``config.track``."""
+        c, n = self.config, self._n_seg
+        if c.track == "train":
+            return tr.sample_train_track(rng, c.tracks, c.dt, c.horizon_steps, n)
+        if c.track == "validation":
+            bank = tr.validation_tracks(c.tracks, c.dt, c.horizon_steps, n)
+            i = jax.random.randint(rng, (), 0, tr.NUM_VALIDATION_TRACKS)
+            return jax.tree.map(lambda x: x[i], bank)
+        if c.track == "spiral_rt":
+            return tr.spiral_rt(c.tracks, n)
+        return tr.los_test_track(c.los_seed, c.tracks, num_segments=n, dt=c.dt, horizon_steps=c.horizon_steps)
+
+    def reset_with_track(self, rng: jax.Array, track: tr.Track) -> State:
+        """New episode on a given track (used by evaluation over many tracks)."""
+        c = self.config
+        k_init, k_wind, k_next = jax.random.split(rng, 3)
+        quad = self._initial_state(k_init, tr.position(track, 0, c.dt))
+        f = quad.p.dtype
+        wind = jnp.zeros(3, f)
+        if c.wind_sigma > 0:
+            wind = c.wind_sigma * jax.random.normal(k_wind, (3,), f)
+        fields = dict(quad=quad, k=jnp.zeros((), jnp.int32), track=track, wind=wind, key=k_next)
+        fields["ref_next"] = jnp.zeros(3, f)
+        if c.action_delay:
+            ps = DelayedTrackingState(**fields, prev_action=hover_action(c).astype(f))
+        else:
+            ps = TrackingState(**fields)
+        obs, ps = self.observe(ps)
+        zero = jnp.zeros((), f)
+        metrics = {"tracking_error": zero, "energy": zero, "energy_sq": zero, "crashed": zero}
+        info = {"truncation": zero, "terminated": zero}
+        return State(pipeline_state=ps, obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
+
+    def step(self, state: State, action: jax.Array) -> State:
+        """Apply ``action`` (4,) in [-1, 1] for ``action_repeat`` physics steps (with
+        ``action_delay = 1``: apply the previous step's action and keep this one)."""
+        c = self.config
+        ps = state.pipeline_state
+        a = jnp.clip(action, -1.0, 1.0).astype(ps.quad.p.dtype)
+        if c.action_delay:
+            a, ps = ps.prev_action, ps.replace(prev_action=a)
+        u = action_to_control(c, a)
+        effort = self._effort(a)
+        zero = jnp.zeros((), ps.quad.p.dtype)
+        carry = (ps.quad, ps.k, ps.wind, ps.key, zero, zero, jnp.zeros((), bool))
+        if c.action_repeat == 1:
+            carry, p_ref = self._substep(ps.track, u, effort, carry, ps.ref_next)
+        else:  # one compiled body, whatever the repeat count
+            carry, p_refs = jax.lax.scan(
+                lambda cr, _: self._substep(ps.track, u, effort, cr), carry, None, c.action_repeat
+            )
+            p_ref = p_refs[-1]
+        quad, k, wind, key, reward, err_sum, crashed = carry
+        terminated = crashed if c.terminate else jnp.zeros((), bool)
+        reward = reward - c.crash_cost * terminated
+        truncated = (k >= c.episode_steps) & ~terminated
+        ps = ps.replace(quad=quad, k=k, wind=wind, key=key)
+        obs, ps = self.observe(ps, p_ref)
+        f = reward.dtype
+        a_norm2 = jnp.sum(a * a)
+        # Σ_k ||e_k|| (m) over the physics steps, Σ ||a||, Σ aᵀa; keeping keys that wrappers added
+        metrics = {**state.metrics, "tracking_error": err_sum, "energy": c.action_repeat * jnp.sqrt(a_norm2),
+                   "energy_sq": c.action_repeat * a_norm2, "crashed": crashed.astype(f)}  # fmt: skip
+        info = {**state.info, "truncation": truncated.astype(f), "terminated": terminated.astype(f)}
+        done = (terminated | truncated).astype(f)
+        return state.replace(pipeline_state=ps, obs=obs, reward=reward, done=done, metrics=metrics, info=info)
+
+    def _substep(self, track, u, effort, carry, p_ref=None):
+        """One physics step of ``dt``: wind, RK4, tracking error, reward, crash flag.
+
+        ``carry = (quad, k, wind, key, reward, err_sum, crashed)``; ``p_ref`` may pass
+        p_d(k+1) when it is already known.  Returns the new carry and p_d(k+1)."""
+        c = self.config
+        quad, k, wind, key, reward, err_sum, crashed = carry
+        if c.wind_sigma > 0:
+            wind, key = ou_wind_step(c, wind, key)
+        quad = rk4_step(
+            c.quad, quad, u, c.dt, wind if c.wind_sigma > 0 else None, c.rk4_substeps, c.renormalize
+        )
+        k = k + 1
+        step_r = -c.rho2 * effort
+        if p_ref is None:
+            p_ref = tr.position(track, k, c.dt)
+        e = jnp.linalg.norm(p_ref - quad.p)
+        finite = jnp.isfinite(e) & _finite(quad)
+        step_r = step_r - c.rho1 * error_cost(c, e)
+        reward = reward + jnp.where(~crashed & finite, step_r, 0.0)
+        err_sum = err_sum + jnp.where(finite, e, jnp.inf)
+        crashed = crashed | ~finite | (e > c.e_max)
+        return (quad, k, wind, key, reward, err_sum, crashed), p_ref
+
+    def _effort(self, a: jax.Array) -> jax.Array:
+        c = self.config
+        if c.effort_hover_relative:
+            a = a - hover_action(c).astype(a.dtype)
+        w = jnp.asarray(self._effort_w, a.dtype)
+        return jnp.sum(w * a * a)
+
+    def _initial_state(self, rng: jax.Array, p0: jax.Array) -> QuadState:
+        c = self.config
+        f = p0.dtype
+        if not c.randomize_init:
+            return QuadState.hover(p0, f)
+        u = jax.random.uniform(rng, (9,), f, -1.0, 1.0)  # one draw, sliced
+        p = p0 + c.init_pos * u[0:3]
+        v = c.init_vel * u[3:6]
+        ang = math.pi * u[6]
+        axis = jnp.stack([jnp.cos(ang), jnp.sin(ang), jnp.zeros((), f)])
+        tilt = 0.5 * (u[7] + 1.0) * math.radians(c.init_tilt_deg)
+        yaw = u[8] * math.radians(c.init_yaw_deg)
+        q = quat_mul(
+            quat_from_axis_angle(jnp.array([0.0, 0.0, 1.0], f), yaw), quat_from_axis_angle(axis, tilt)
+        )
+        return QuadState(p=p, v=v, q=q, w=jnp.zeros(3, f))
+
+    def observe(self, ps: TrackingState, p_ref_now: jax.Array | None = None):
+        """Observation (O1), and the state with its noise key advanced and ``ref_next``
+        refreshed.  ``p_ref_now`` may pass p_d(k) when the caller already has it."""
+        c = self.config
+        x = ps.quad
+        p, v, q = x.p, x.v, x.q
+        if c.obs_noise_pos > 0 or c.obs_noise_vel > 0 or c.obs_noise_quat > 0:
+            # jax.random here, not ttd3_jax.sim.rng: the same draws, but fused with this arithmetic
+            # they change the last bit of a few observations (tests/test_rng.py), and this runs
+            # once per env step (robustness evaluation), not once per physics step
+            key, kp, kv, kq = jax.random.split(ps.key, 4)
+            p = p + c.obs_noise_pos * jax.random.normal(kp, (3,), p.dtype)
+            v = v + c.obs_noise_vel * jax.random.normal(kv, (3,), p.dtype)
+            q = q + c.obs_noise_quat * jax.random.normal(kq, (4,), p.dtype)
+            q = q / jnp.linalg.norm(q)
+            ps = ps.replace(key=key)
+        if c.canonical_q_obs:
+            q = jnp.where(q[0] < 0, -q, q)
+        p_ahead = tr.position(ps.track, ps.k + c.lookahead_k, c.dt)
+        p_next = p_ahead if c.lookahead_k == 1 else tr.position(ps.track, ps.k + 1, c.dt)
+        ps = ps.replace(ref_next=p_next)
+        if c.err_ref == "next":
+            p_err = p_next
+        else:
+            p_err = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
+        err = jnp.linalg.norm(p_err - p)
+        if c.obs_frame == "track":  # same 17 numbers with the origin moved to p_d,k
+            p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
+            parts = [p - p_now, v, q, p_ahead - p_now, p_ahead - p, err[None]]
+        else:
+            parts = [p, v, q, p_ahead, p_ahead - p, err[None]]
+        if self._rates_in_obs:
+            parts.append(x.w)
+        # non-finite entries (a diverged state) read as 0, in one read of the concatenation
+        return _zero_non_finite(jnp.concatenate(parts)), ps
+
+
+def ou_wind_step(c: EnvConfig, wind: jax.Array, key: jax.Array):
+    """One physics step (``c.dt``) of the OU wind acceleration ``wind`` (3,) m/s², with
+    stationary std ``c.wind_sigma`` and correlation time ``c.wind_tau``; returns
+    ``(wind, key)`` (one split and 3 normals of ``ttd3_jax.sim.rng``)."""
+    key, sub = rng.split(key)
+    phi = math.exp(-c.dt / c.wind_tau)
+    xi = rng.normal(sub, (3,), wind.dtype)
+    return phi * wind + c.wind_sigma * math.sqrt(1.0 - phi * phi) * xi, key
+
+
+def yaw_of(q: jax.Array) -> jax.Array:
+    """Yaw ψ (rad) of the scalar-first unit quaternion ``q`` (z-y-x Euler angles)."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return jnp.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+@jax.custom_jvp
+def _zero_non_finite(x: jax.Array) -> jax.Array:
+    """``x`` with its NaN and inf entries set to +0.0 (the same values as
+    ``jnp.where(jnp.isfinite(x), x, 0.0)``, and the same derivative).
+
+    The test reads the exponent bits, so that ``x`` is used once: XLA:CPU then fuses the
+    observation's concatenation into the mask instead of writing it out first
+    (benchmarks/env_throughput.py)."""
+    return _mask_bits(x)
+
+
+def _mask_bits(x: jax.Array) -> jax.Array:
+    f = jnp.finfo(x.dtype)
+    ints = jnp.dtype(f"int{f.bits}")
+    exp = ((1 << f.nexp) - 1) << f.nmant  # all exponent bits set: inf or NaN
+    bits = jax.lax.bitcast_convert_type(x, ints)
+    mask = jnp.asarray(exp, ints)
+    return jax.lax.bitcast_convert_type(jnp.where(bits & mask == mask, 0, bits), x.dtype)
+
+
+@_zero_non_finite.defjvp
+def _zero_non_finite_jvp(primals, tangents):
+    (x,), (t,) = primals, tangents
+    return _mask_bits(x), jnp.where(jnp.isfinite(x), t, 0.0)
+
+
+def _finite(x: QuadState) -> jax.Array:
+    """True when every state entry is finite (a NaN or inf anywhere makes the sum non-finite).
+
+    The entries are added one by one rather than with ``jnp.sum``: a reduction would end
+    the step's fusion on XLA:CPU (benchmarks/env_throughput.py)."""
+    return jnp.isfinite(sum(leaf[..., i] for leaf in jax.tree.leaves(x) for i in range(leaf.shape[-1])))

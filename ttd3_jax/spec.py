@@ -1,0 +1,178 @@
+"""The run spec: one object that says everything a training run is.
+
+A :class:`RunSpec` holds the env (the quadrotor tracking env's whole
+:class:`~ttd3_jax.sim.config.EnvConfig`, or a Brax task), the static
+:class:`~ttd3_jax.td3.config.TrainConfig`, the :class:`~ttd3_jax.td3.config.Hyper` pytree
+and the seeds.  The CLI parses it with tyro, ``config.json`` stores it whole, and resume
+and evaluation rebuild the run from it alone.  :func:`preset` gives the documented ones.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Annotated
+
+import dacite
+import tyro
+
+from ttd3_jax.sim.config import EnvConfig, make_config
+from ttd3_jax.td3 import envs
+from ttd3_jax.td3.buffer import transition_bytes
+from ttd3_jax.td3.config import Hyper, TrainConfig, validate_hyper
+from ttd3_jax.td3.trainer import Trainer, make_trainer
+
+QUADROTOR = "quadrotor"
+PRESETS = ("fast", "fast_dpg", "paper", "mujoco")
+
+
+@dataclasses.dataclass(frozen=True)
+class BraxSettings:
+    """A Brax/MJX task's settings (``env`` other than ``"quadrotor"``)."""
+
+    backend: str = "mjx"  # Brax physics backend
+    episode_length: int = 1000  # steps per episode (L_nom)
+    eval_episodes: int = 10  # deterministic episodes per evaluation
+
+    def __post_init__(self):
+        if self.backend not in envs.BACKENDS:
+            raise ValueError(f"brax.backend must be one of {envs.BACKENDS}, got {self.backend!r}")
+        for name in ("episode_length", "eval_episodes"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"brax.{name} must be an integer >= 1, got {v!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSpec:
+    """Everything a training run is. Validated on construction, before anything compiles."""
+
+    env: str = QUADROTOR  # "quadrotor" or a Brax env name
+    train: Annotated[TrainConfig, tyro.conf.arg(name="")] = TrainConfig()  # (flat on the command line)
+    hp: Hyper = Hyper()
+    task: EnvConfig = make_config("paper")  # the quadrotor env (env "quadrotor")
+    brax: BraxSettings = BraxSettings()  # the Brax env (any other env)
+    seed: int = 0
+    num_seeds: int = 1  # seeds run side by side with vmap: seed, seed+1, ...
+
+    def __post_init__(self):
+        if self.env != QUADROTOR and self.env not in envs.BRAX_ENVS:
+            raise ValueError(f"env must be {QUADROTOR!r} or one of {envs.BRAX_ENVS}, got {self.env!r}")
+        for name, lo in (("seed", 0), ("num_seeds", 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+        for name, kind in (
+            ("train", TrainConfig),
+            ("hp", Hyper),
+            ("task", EnvConfig),
+            ("brax", BraxSettings),
+        ):
+            if not isinstance(v := getattr(self, name), kind):
+                raise ValueError(f"{name} must be a {kind.__name__}, got {type(v).__name__}")
+        validate_hyper(self.hp)
+        if self.train.model_horizon > 0 and self.env != QUADROTOR:
+            raise ValueError(
+                f"model_horizon > 0 back-propagates through the quadrotor simulator; env {self.env!r} "
+                "needs model_horizon 0"
+            )
+        if self.task.track != "train":
+            raise ValueError(
+                f"task.track must be 'train' (training draws the training mixture; the test and "
+                f"validation tracks are never trained on), got {self.task.track!r}"
+            )
+
+    @property
+    def algo(self) -> str:
+        return self.train.algo
+
+    @property
+    def is_quadrotor(self) -> bool:
+        return self.env == QUADROTOR
+
+
+def env_spec(spec: RunSpec) -> envs.EnvSpec:
+    """The env the run trains on, with its evaluation."""
+    if spec.is_quadrotor:
+        return envs.quadrotor(spec.task)
+    b = spec.brax
+    return envs.brax(spec.env, b.backend, b.episode_length, b.eval_episodes)
+
+
+def trainer_for(spec: RunSpec, on_progress=None) -> Trainer:
+    """The run's :class:`~ttd3_jax.td3.trainer.Trainer` (see ``make_trainer``)."""
+    return make_trainer(spec.train, env_spec(spec), on_progress)
+
+
+def buffer_bytes(spec: RunSpec, obs_size: int, action_size: int) -> int:
+    """Replay memory of the whole run (all seeds, float32), in bytes."""
+    return spec.num_seeds * spec.train.buffer_capacity * transition_bytes(obs_size, action_size)
+
+
+def preset(name: str, **changes) -> RunSpec:
+    """A named run spec, with ``changes`` on top: :class:`RunSpec` fields, or
+    :class:`~ttd3_jax.td3.config.TrainConfig` fields (routed into ``train``).
+
+    ``paper``: the published quadrotor settings (spec §2.4), 3e6 transitions.
+    ``fast``: the ``practical`` env (10 ms actions, 50 ms look-ahead, track-frame
+    observation) with hover-centred thrust, running observation normalisation, 64-64
+    networks, 64 envs, rewards scaled by 0.01, and (not in the paper) a model-based actor
+    update: 0.5 s rollouts (``model_horizon=50``) back-propagated through the simulator,
+    actor lr 1e-3.  The twin critics are still trained by TD3; the actor does not use them.
+    ``fast_dpg``: ``fast`` with the paper's actor update (∂Q₁/∂a through the critic), 450k
+    transitions, 16 updates per 64-env step; it plateaus (docs/results.md).
+    ``mujoco``: the MuJoCo protocol (spec §2.7) on hopper: 1 env, 1 update per step,
+    τ = 0.005, c = 0.5, 1e6 steps, L_nom = 1000.
+    """
+    if name == "paper":
+        base = RunSpec()
+    elif name in ("fast", "fast_dpg"):
+        train = TrainConfig(num_envs=64, total_transitions=450_000, warmup_transitions=10_000,
+                            buffer_size=450_000, batch_size=256, updates_per_step=16, hidden=(64, 64),
+                            normalize_obs=True, epochs=15)  # fmt: skip
+        hp = Hyper(tau=0.005, reward_scale=0.01)
+        if name == "fast":
+            train = dataclasses.replace(train, model_horizon=50, total_transitions=3_200_000, epochs=10)
+            hp = hp.replace(lr_actor=1e-3)
+        base = RunSpec(train=train, hp=hp, task=make_config("practical", hover_centered_thrust=True))
+    elif name == "mujoco":
+        train = TrainConfig(num_envs=1, total_transitions=1_000_000, warmup_transitions=25_000,
+                            buffer_size=1_000_000, updates_per_step=1, epochs=200)  # fmt: skip
+        base = RunSpec(env="hopper", train=train, hp=Hyper(tau=0.005, target_clip=0.5))
+    else:
+        raise ValueError(f"unknown preset {name!r}; allowed: {PRESETS}")
+    return replace(base, **changes)
+
+
+def replace(spec: RunSpec, **changes) -> RunSpec:
+    """``spec`` with ``changes``: RunSpec fields, or TrainConfig fields (into ``train``)."""
+    own = {f.name for f in dataclasses.fields(RunSpec)}
+    train_fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    unknown = sorted(set(changes) - own - train_fields)
+    if unknown:
+        raise ValueError(f"unknown run spec field(s) {unknown}; allowed: {sorted(own | train_fields)}")
+    train = {k: v for k, v in changes.items() if k not in own}
+    if train:
+        changes = {**{k: v for k, v in changes.items() if k in own}, "train": dataclasses.replace(
+            changes.get("train", spec.train), **train)}  # fmt: skip
+    return dataclasses.replace(spec, **changes) if changes else spec
+
+
+def to_dict(spec: RunSpec) -> dict:
+    """The spec as plain JSON values (``config.json``)."""
+    return dataclasses.asdict(spec)
+
+
+# JSON lists are tuples here, and an integer is a float where a float goes (``"u_max": 1``)
+_DACITE = dacite.Config(
+    strict=True, cast=[tuple], type_hooks={float: lambda x: float(x) if type(x) is int else x}
+)
+
+
+def from_dict(d: dict) -> RunSpec:
+    """The spec stored by :func:`to_dict` (dacite builds the nested dataclasses and checks
+    every value's type).  Raises ``ValueError`` naming a field that does not exist or a value
+    of the wrong type; fields a file leaves out take their defaults."""
+    try:
+        return dacite.from_dict(RunSpec, d, config=_DACITE)
+    except dacite.DaciteError as e:
+        raise ValueError(f"run spec: {e}") from None

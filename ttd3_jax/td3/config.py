@@ -1,0 +1,160 @@
+"""The trainer's configuration: static settings apart from numeric hyperparameters.
+
+:class:`TrainConfig` (frozen) fixes shapes, loop lengths and switches: changing it means a
+new compiled program.  :class:`Hyper` is a pytree of numbers the compiled program takes as
+an argument, so a sweep over seeds and hyperparameters is a ``vmap`` of one program.
+Counts are env transitions unless stated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from flax import struct
+
+from ttd3_jax.td3.noise import NoiseConfig
+
+ALGOS = ("ttd3", "td3")
+TARGET_NOISES = ("fixed", "shared_sigma")
+MAX_TRANSITIONS = 2_000_000_000  # the transition counter is int32
+
+
+@struct.dataclass
+class Hyper:
+    """Numeric hyperparameters: pytree leaves, so ``vmap`` sweeps over them (spec §2.4)."""
+
+    gamma: float = 0.99  # discount per env step
+    tau: float = 5e-4  # Polyak factor (A6: 1 - 0.9995)
+    lr_actor: float = 3e-4  # Adam
+    lr_critic: float = 3e-4  # Adam
+    sigma: float = 0.1  # TD3's constant exploration std
+    beta: float = 0.08  # T-TD3 weight of the time term
+    lam: float = 0.01  # T-TD3 decay rate per unit of t
+    u_max: float = 1.0  # action bound used by the σ formula
+    target_sigma: float = 0.2  # σ̃, target-policy smoothing std
+    target_clip: float = 0.1  # c, target-policy smoothing clip
+    reward_scale: float = 1.0  # rewards are stored times this (keeps Q values O(1..100))
+    model_grad_clip: float = 1.0  # global-norm clip of the model-based actor gradient
+
+
+# (lower bound, lower bound included, upper bound, upper bound included) of each Hyper field
+_HYPER_RANGES = {
+    "gamma": (0.0, True, 1.0, False),
+    "tau": (0.0, False, 1.0, True),
+    "beta": (0.0, True, 1.0, True),
+    **dict.fromkeys(("lr_actor", "lr_critic", "u_max", "reward_scale", "model_grad_clip"),
+                    (0.0, False, math.inf, False)),
+    **dict.fromkeys(("sigma", "lam", "target_sigma", "target_clip"), (0.0, True, math.inf, False)),
+}  # fmt: skip
+
+
+def validate_hyper(hp: Hyper) -> None:
+    """Raise ``ValueError`` naming a field of ``hp`` that is not a finite number in range
+    (for a run's own ``hp``; a sweep's arrays of values are the caller's to check)."""
+    for f in dataclasses.fields(hp):
+        v, (lo, lo_in, hi, hi_in) = getattr(hp, f.name), _HYPER_RANGES[f.name]
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        ok = ok and (v >= lo if lo_in else v > lo) and (v <= hi if hi_in else v < hi)
+        if not ok:
+            span = f"{'[' if lo_in else '('}{lo:g}, {hi:g}{']' if hi_in else ')'}"
+            raise ValueError(f"hp.{f.name} must be a finite number in {span}, got {v!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Static training configuration. Validated on construction."""
+
+    algo: str = "ttd3"  # "ttd3" (time-attenuating σ) | "td3" (constant σ)
+    num_envs: int = 20  # M, parallel training envs
+    total_transitions: int = 3_000_000
+    warmup_transitions: int = 25_000  # uniform-random actions before learning
+    buffer_size: int = 1_000_000  # rounded up to a multiple of num_envs
+    batch_size: int = 256
+    updates_per_step: int = 20  # G, gradient updates per vector env step
+    policy_delay: int = 2  # d
+    # 0: the actor follows ∂Q₁/∂a (TD3, the paper).  H >= 1 (quadrotor only, not in the paper):
+    # every vector step rolls the envs H steps with the current policy (plus exploration
+    # noise), back-propagates Σ γ^k r_k through the simulator into the actor, and stores the
+    # H·num_envs transitions for the usual TD3 critic updates.
+    model_horizon: int = 0
+    hidden: tuple[int, ...] = (256, 256)
+    normalize_obs: bool = False  # running mean/std normalisation of observations (nets' input)
+    epochs: int = 50  # progress / eval / checkpoint points
+    noise: NoiseConfig = NoiseConfig()
+    target_noise: str = "fixed"  # A4: σ̃ fixed, or "shared_sigma" (uses the current σ)
+
+    def __post_init__(self):
+        _validate(self)
+
+    @property
+    def time_attenuating(self) -> bool:
+        """T-TD3's σ schedule (``algo="ttd3"``); TD3 keeps σ constant."""
+        return self.algo == "ttd3"
+
+    @property
+    def env_steps_per_step(self) -> int:
+        """Env steps per vector step after warm-up (``model_horizon``, or 1)."""
+        return max(1, self.model_horizon)
+
+    @property
+    def warmup_steps(self) -> int:
+        """Vector env steps of random warm-up."""
+        return -(-self.warmup_transitions // self.num_envs)
+
+    @property
+    def steps_per_epoch(self) -> int:
+        """Vector steps (each ``env_steps_per_step`` env steps, then G updates) per compiled epoch."""
+        left = self.total_transitions // self.num_envs - self.warmup_steps
+        return max(1, left // (self.env_steps_per_step * self.epochs))
+
+    @property
+    def buffer_capacity(self) -> int:
+        return -(-self.buffer_size // self.num_envs) * self.num_envs
+
+    @property
+    def transitions_run(self) -> int:
+        """Transitions a run collects per seed: the budget rounded down to whole epochs."""
+        return (
+            self.warmup_steps + self.steps_per_epoch * self.epochs * self.env_steps_per_step
+        ) * self.num_envs
+
+
+def _integer(c: TrainConfig, name: str, lo: int, hi: int = MAX_TRANSITIONS) -> None:
+    v = getattr(c, name)
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise ValueError(f"{name} must be an integer in [{lo}, {hi:,}], got {v!r}")
+
+
+def _validate(c: TrainConfig) -> None:
+    """Raise ``ValueError`` naming the bad field; runs before anything is compiled."""
+    if c.algo not in ALGOS:
+        raise ValueError(f"algo must be one of {ALGOS}, got {c.algo!r}")
+    if c.target_noise not in TARGET_NOISES:
+        raise ValueError(f"target_noise must be one of {TARGET_NOISES}, got {c.target_noise!r}")
+    for name in ("num_envs", "total_transitions", "buffer_size", "batch_size", "updates_per_step",
+                 "policy_delay", "epochs"):  # fmt: skip
+        _integer(c, name, 1)
+    _integer(c, "model_horizon", 0, 100_000)
+    _integer(c, "warmup_transitions", 0)
+    if not isinstance(c.normalize_obs, bool):
+        raise ValueError(f"normalize_obs must be true or false, got {c.normalize_obs!r}")
+    if not isinstance(c.noise, NoiseConfig):
+        raise ValueError(f"noise must be a NoiseConfig, got {type(c.noise).__name__}")
+    if len(c.hidden) < 1 or not all(
+        isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in c.hidden
+    ):
+        raise ValueError(f"hidden must be one or more layer widths >= 1, got {c.hidden!r}")
+    if c.batch_size > c.buffer_size:
+        raise ValueError(f"batch_size ({c.batch_size}) must be <= buffer_size ({c.buffer_size})")
+    if c.warmup_transitions < c.batch_size:
+        raise ValueError(
+            f"warmup_transitions ({c.warmup_transitions}) must be >= batch_size ({c.batch_size}) so the "
+            "first minibatch is drawn from a filled buffer"
+        )
+    budget = (c.total_transitions // c.num_envs - c.warmup_steps) // c.env_steps_per_step
+    if budget < c.epochs:
+        raise ValueError(
+            f"total_transitions ({c.total_transitions}) leaves {max(budget, 0)} vector steps after warm-up, "
+            f"fewer than epochs ({c.epochs}); raise total_transitions or lower epochs"
+        )

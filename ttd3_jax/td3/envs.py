@@ -1,0 +1,103 @@
+"""The envs the trainer drives, each with its own evaluation: the quadrotor tracking env
+and the Brax/MJX tasks.
+
+An :class:`EnvSpec` is all the trainer knows about an env: a single-env object with the
+Brax ``reset`` / ``step`` API whose ``info`` carries ``"truncation"`` and ``"terminated"``
+(a true terminal state, apart from the time limit), its sizes, the nominal episode length
+(T-TD3's time unit) and ``evaluate(policy)``, which scores a deterministic ``policy(obs)``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ttd3_jax.control.closed_loop import policy_controller, test_and_validation_metrics
+from ttd3_jax.sim.config import EnvConfig
+from ttd3_jax.sim.env import TrackingEnv
+
+BRAX_ENVS = (
+    "ant", "halfcheetah", "hopper", "humanoid", "humanoidstandup", "inverted_pendulum",
+    "inverted_double_pendulum", "pusher", "reacher", "swimmer", "walker2d",
+)  # fmt: skip
+BACKENDS = ("mjx", "generalized", "positional", "spring")
+EVAL_KEY = 12345  # Brax evaluation episodes start from fixed keys
+
+
+class EnvSpec(NamedTuple):
+    env: object  # single-env object with Brax reset/step
+    obs_size: int
+    action_size: int
+    episode_length: int  # transitions per nominal episode (L_nom)
+    evaluate: Callable[[Callable], dict]  # policy (obs -> action) -> metrics (pure; jit it)
+    differentiable: bool  # whether gradients flow through env.step (model_horizon > 0)
+
+
+def quadrotor(cfg: EnvConfig) -> EnvSpec:
+    """The tracking env of ``cfg``, evaluated on the test and validation tracks
+    (:func:`~ttd3_jax.control.closed_loop.test_and_validation_metrics`)."""
+    env = TrackingEnv(cfg)
+
+    def evaluate(policy):
+        return test_and_validation_metrics(cfg, policy_controller(policy))
+
+    return EnvSpec(env, env.observation_size, env.action_size, env.episode_length, evaluate, True)
+
+
+class _WithTerminated:
+    """A Brax env whose ``info["terminated"]`` is 1.0 at a true terminal state (a fall), and
+    0.0 at the time limit (``info["truncation"]``), as :class:`~ttd3_jax.sim.env.TrackingEnv`
+    reports it."""
+
+    def __init__(self, env):
+        self.env = env
+        self.observation_size, self.action_size = env.observation_size, env.action_size
+
+    def reset(self, rng: jax.Array):
+        s = self.env.reset(rng)
+        return s.replace(info={**s.info, "terminated": jnp.zeros_like(s.done)})
+
+    def step(self, state, action: jax.Array):
+        s = self.env.step(state, action)
+        return s.replace(info={**s.info, "terminated": s.done * (1.0 - s.info["truncation"])})
+
+
+def brax(name: str, backend: str = "mjx", episode_length: int = 1000, eval_episodes: int = 10) -> EnvSpec:
+    """Brax env ``name`` with a time limit of ``episode_length`` steps; evaluated by the mean
+    undiscounted return of ``eval_episodes`` deterministic episodes (``eval_return``)."""
+    # mujoco.mjx (imported by brax) prints "Failed to import warp" when the optional GPU
+    # package is absent; keep that out of our output
+    with contextlib.redirect_stdout(io.StringIO()):
+        from brax import envs as brax_envs
+        from brax.envs.wrappers.training import EpisodeWrapper
+
+        env = EpisodeWrapper(
+            brax_envs.get_environment(name, backend=backend), episode_length, action_repeat=1
+        )
+    env = _WithTerminated(env)
+
+    def evaluate(policy):
+        s = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(EVAL_KEY), eval_episodes))
+
+        def body(carry):
+            t, s, ret, alive = carry
+            s = jax.vmap(env.step)(s, jax.vmap(policy)(s.obs))
+            # where, not alive * reward: a finished episode keeps stepping and its physics may
+            # blow up (MJX inverted_double_pendulum does), and 0 * nan is nan
+            ret = ret + jnp.where(alive > 0, s.reward, 0.0)
+            return t + 1, s, ret, alive * (1.0 - s.done)
+
+        def running(carry):  # stop early once every episode has ended (falls end them early)
+            t, _, _, alive = carry
+            return (t < episode_length) & jnp.any(alive > 0)
+
+        ones = jnp.ones(eval_episodes)
+        init = (jnp.zeros((), jnp.int32), s, 0.0 * ones, ones)
+        return {"eval_return": jnp.mean(jax.lax.while_loop(running, body, init)[2])}
+
+    return EnvSpec(env, env.observation_size, env.action_size, episode_length, evaluate, False)
