@@ -12,7 +12,7 @@ then need re-running.  Run this before and after a change and compare the lines:
     python benchmarks/fingerprint.py --compare benchmarks/results/fingerprint.txt
 
 ``benchmarks/results/fingerprint.txt`` holds the lines of the committed code on the
-project's 2-core CPU VM (its first line names jax and the platform; another jax or CPU
+project's 2-core CPU VM (its first line names jax and the CPU; another jax or CPU
 may round differently, so compare like with like).  ``--compare FILE`` checks each line
 against FILE and exits 1 naming the ones that differ.
 
@@ -104,11 +104,15 @@ def main(argv=None):
     ap.add_argument("--train", nargs="*", default=["fast", "fast_dpg"], help="training presets to run")
     ap.add_argument("--compare", default=None, help="reference file of lines (see above)")
     args = ap.parse_args(argv)
-    want = {}
+    want, header = {}, f"# jax {jax.__version__}, {device_description()}"
     if args.compare:
         with open(args.compare) as fh:
-            want = dict(line.split() for line in fh if line.strip() and not line.startswith("#"))
-    print(f"# jax {jax.__version__}, {device_description()}")
+            lines = [line.strip() for line in fh if line.strip()]
+        want = dict(line.split() for line in lines if not line.startswith("#"))
+        theirs = next((line for line in lines if line.startswith("#")), "")
+        if theirs != header:  # another jax or CPU may round differently
+            print(f"# warning: {args.compare} was made on another machine or jax: {theirs!r}")
+    print(header)
     got = {}
     for name, cfg in env_cases().items():
         got[name] = digest(env_rollout(cfg))

@@ -34,6 +34,7 @@ from ttd3_jax.train import main
         (["--task.e-max", "-1"], "EnvConfig.e_max must be > 0"),
         (["--task.obs-frame", "heading"], "obs_frame must be one of"),
         (["--task.track", "spiral_rt"], "task.track must be 'train'"),
+        (["--task.los-seed", "3"], "task.los_seed 0"),
         (
             ["--preset", "mujoco", "--task.e-max", "1.5"],
             r"--task.\* sets the quadrotor env; env 'hopper' has none",

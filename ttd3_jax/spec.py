@@ -75,10 +75,11 @@ class RunSpec:
                 f"model_horizon > 0 back-propagates through the quadrotor simulator; env {self.env!r} "
                 "needs model_horizon 0"
             )
-        if self.task.track != "train":
+        if self.task.track != "train" or self.task.los_seed != 0:
             raise ValueError(
-                f"task.track must be 'train' (training draws the training mixture; the test and "
-                f"validation tracks are never trained on), got {self.task.track!r}"
+                "task.track must be 'train' and task.los_seed 0 (training draws the training mixture; the "
+                "test and validation tracks are never trained on), got "
+                f"{self.task.track!r}, {self.task.los_seed}"
             )
 
     @property
