@@ -11,7 +11,7 @@ def tiny(**changes) -> sp.RunSpec:
     Without a model horizon, an epoch stays 16 vector steps whatever ``epochs`` is, so the
     tests' runs share one compiled epoch (through the suite's compilation cache)."""
     epochs = changes.get("epochs", 2)
-    steps = 16 * epochs if not changes.get("model_horizon") else 32
+    steps = 16 * max(epochs, 1) if isinstance(epochs, int) and not changes.get("model_horizon") else 32
     base = dict(num_envs=16, total_transitions=16 * (8 + steps), warmup_transitions=16 * 8,
                 buffer_size=16 * 64, batch_size=64, updates_per_step=2, epochs=epochs,
                 hidden=(32, 32))  # fmt: skip

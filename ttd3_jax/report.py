@@ -1,10 +1,5 @@
-"""What people read and look at: result tables, trace CSVs, plots.
-
-:func:`plot_traces` writes, per test track, PNG files of the reference and flown 3-D paths
-(m), the tracking error ‖p_d − p‖ (m, log scale) against time (s), and the four applied
-normalised actions with ‖a‖ against time; :func:`write_traces` the same data as CSV;
-:func:`plot_learning_curve` a run's test errors per epoch.  matplotlib is imported on
-first use, with the non-interactive ``Agg`` backend.
+"""What people read and look at: result tables, trace CSVs and plots (matplotlib, imported
+on first use with the ``Agg`` backend).
 """
 
 from __future__ import annotations
@@ -169,27 +164,24 @@ def json_safe(x):
     return x
 
 
+# the evaluation table's columns: (title, metric, format); the timing ones need --timing
+_COLUMNS = (("Σ||e|| [m]", "tracking_error", "11.2f"), ("RMSE [m]", "rmse", "9.4f"),
+            ("max [m]", "max_error", "8.4f"), ("crash", "crashed", "5.0f"), ("Σ||a||", "energy", "8.1f"),
+            ("Σaᵀa", "energy_sq", "8.1f"))  # fmt: skip
+_TIMING = (("steps", "control_steps", "5d"), ("compile s", "compile_scan_s", "9.2f"),
+           ("loop s", "loop_s", "7.3f"), ("scan s", "scan_s", "7.3f"),
+           ("act ms", "act_ms", "7.3f"))  # fmt: skip
+
+
 def format_results(results: dict[str, dict[str, dict]], timing: bool) -> str:
     """The evaluation table: one row per (label, track)."""
-    head = f"{'':<14} {'track':<10} {'Σ||e|| [m]':>11} {'RMSE [m]':>9} {'max [m]':>8} {'crash':>5} "
-    head += f"{'Σ||a||':>8} {'Σaᵀa':>8}"
-    if timing:
-        head += f" {'steps':>5} {'compile s':>9} {'loop s':>7} {'scan s':>7} {'act ms':>7}"
-    lines = [head]
-    for label, per_track in results.items():
-        for name, m in per_track.items():
-            row = (
-                f"{label:<14} {name:<10} {fmt(m['tracking_error'], '11.2f')} {fmt(m['rmse'], '9.4f')} "
-                f"{fmt(m['max_error'], '8.4f')} {int(m['crashed']):>5} {fmt(m['energy'], '8.1f')} "
-                f"{fmt(m['energy_sq'], '8.1f')}"
-            )
-            if timing:
-                row += (
-                    f" {m['control_steps']:>5} {m['compile_scan_s']:>9.2f} {m['loop_s']:>7.3f} "
-                    f"{m['scan_s']:>7.3f} {m['act_ms']:>7.3f}"
-                )
-            lines.append(row)
-    return "\n".join(lines)
+    cols = _COLUMNS + (_TIMING if timing else ())
+    head = f"{'':<14} {'track':<10} " + " ".join(
+        f"{t:>{int(f.split('.')[0].rstrip('d'))}}" for t, _, f in cols
+    )
+    rows = [f"{label:<14} {name:<10} " + " ".join(fmt(m[k], f) for _, k, f in cols)
+            for label, per_track in results.items() for name, m in per_track.items()]  # fmt: skip
+    return "\n".join([head, *rows])
 
 
 def format_paper() -> str:

@@ -1,8 +1,6 @@
-"""The Python loop around the compiled epochs: progress, evaluation, logs, checkpoints, resume.
-
-Each epoch is one compiled call; nothing recompiles between epochs.  A checkpoint of the
-whole train state follows every epoch, so a kill loses at most the epoch in flight, and a
-resume continues bit for bit.  The run directory's layout is in :mod:`ttd3_jax.runs`.
+"""The Python loop around the compiled epochs: progress, evaluation, logs, checkpoints,
+resume.  Each epoch is one compiled call; a checkpoint of the whole train state follows it,
+so a kill loses at most the epoch in flight and a resume continues bit for bit.
 """
 
 from __future__ import annotations

@@ -1,10 +1,7 @@
-"""A run directory on disk: its spec, metrics, checkpoints and selected policies.
-
-``runs/<env>-<algo>-s<seed>-<time>/`` holds ``config.json`` (the whole
-:class:`~ttd3_jax.spec.RunSpec`), ``metrics.csv`` (one row per epoch and seed),
-``checkpoints/`` (orbax, the whole train state), ``best/`` (each seed's policy selected on
-the validation tracks), ``eval.json`` and ``learning_curve.png``.  Everything that reads a
-run rebuilds it from ``config.json`` alone.
+"""A run directory on disk: ``config.json`` (the whole :class:`~ttd3_jax.spec.RunSpec`;
+everything that reads a run rebuilds it from this alone), ``metrics.csv`` (one row per epoch
+and seed), ``checkpoints/`` (orbax, the whole train state), ``best/`` (each seed's policy
+selected on the validation tracks), ``eval.json`` and ``learning_curve.png``.
 """
 
 from __future__ import annotations

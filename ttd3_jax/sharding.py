@@ -63,15 +63,11 @@ def _pad(x, axis: int, extra: int):
 
 def shard_vmapped(fn: Callable, in_axes: tuple, mesh: Mesh | None = None, pad: bool = False,
                   **jit_kw) -> Callable:  # fmt: skip
-    """``jit(vmap(fn, in_axes))`` with the mapped axis split over the mesh's ``sweep`` axis.
-
-    ``in_axes`` entries (prefix trees, e.g. a ``Hyper`` of 0 / None leaves) must be 0 or
-    ``None``; unmapped arguments are replicated.  The mapped size must be a multiple of the
-    number of sweep devices, else ``ValueError``; with ``pad=True`` the batch is padded by
-    repeating its last entry and the padding is cut from the outputs (cut outputs are
-    gathered, no longer split over the devices: return only what you need, e.g. metrics
-    rather than a train state with its replay buffer).  Results equal the unsharded
-    ``jit(vmap(fn))``: the computation is independent along the mapped axis."""
+    """``jit(vmap(fn, in_axes))`` with the mapped axis split over the mesh's ``sweep`` axis;
+    the results equal the unsharded ones.  ``in_axes`` entries (prefix trees, e.g. a ``Hyper``
+    of 0 / None leaves) must be 0 or ``None``; unmapped arguments are replicated.  The mapped
+    size must be a multiple of the sweep devices, or ``pad=True`` repeats its last entry and
+    cuts the padding from the outputs (which are then gathered: return metrics, not states)."""
     if not isinstance(in_axes, tuple | list):
         raise ValueError(f"in_axes must be a tuple with one entry per argument, got {in_axes!r}")
     for ax in jax.tree.leaves(in_axes):
@@ -139,34 +135,28 @@ def state_shardings(state, mesh: Mesh, num_envs: int):
 
 
 def per_seed(fn: Callable, num_seeds: int, in_axes: tuple) -> Callable:
-    """``fn`` mapped over the leading seed axis of the arguments marked 0 in ``in_axes``.
-
-    A single seed skips ``vmap`` (keeping the axis of length 1), so the trainer's
-    ``lax.cond`` branches stay branches instead of becoming selects that run both sides.
-    """
+    """``fn`` mapped over the leading seed axis of the arguments marked 0 in ``in_axes``.  A
+    single seed skips ``vmap`` (keeping the axis of length 1), so the trainer's ``lax.cond``
+    branches stay branches instead of becoming selects that run both sides."""
     if num_seeds > 1:
         return jax.vmap(fn, in_axes=in_axes)
 
     def one(*args):
-        args = [
+        first = [
             jax.tree.map(lambda x: x[0], a) if ax == 0 else a for a, ax in zip(args, in_axes, strict=True)
         ]
-        return jax.tree.map(lambda x: x[None], fn(*args))
+        return jax.tree.map(lambda x: x[None], fn(*first))
 
     return one
 
 
 def runner_fns(trainer, keys: jax.Array, hp, mesh: Mesh | None = None):
     """``(init_fn, epoch_fn, eval_fn, place)`` for :func:`ttd3_jax.runner.run`: the trainer's
-    functions over the seeds of ``keys`` (one per seed).
-
-    On one device these are the plain ``jit(per_seed(...))`` functions, and ``place(state)``
-    puts a restored (host) state on the default device uncommitted, as ``jit`` returns a fresh
-    one: a committed state would lower with a sharding annotation, so a resumed run would
-    compile its epoch again instead of finding it in the compilation cache.  With several
-    devices, the seed axis is split over ``sweep`` and the env axis over ``env``
-    (:func:`seed_env_mesh`); ``place(state)`` puts a restored state on the mesh.  Single
-    process only: the runner reads metrics and checkpoints on its host."""
+    functions over the seeds of ``keys`` (one per seed).  On one device: ``jit(per_seed(...))``,
+    and ``place`` puts a restored (host) state on the device uncommitted, as a fresh one is (a
+    committed state would lower to another program, missing the compilation cache).  On several
+    devices (single process): seeds split over ``sweep``, envs over ``env``, and ``place`` puts a
+    state on that mesh."""
     num_seeds, num_envs = keys.shape[0], trainer.config.num_envs
     mesh = seed_env_mesh(num_seeds, num_envs) if mesh is None else mesh
     if num_seeds % mesh.shape[SWEEP]:

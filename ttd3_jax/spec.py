@@ -1,10 +1,6 @@
-"""The run spec: one object that says everything a training run is.
-
-A :class:`RunSpec` holds the env (the quadrotor tracking env's whole
-:class:`~ttd3_jax.sim.config.EnvConfig`, or a Brax task), the static
-:class:`~ttd3_jax.td3.config.TrainConfig`, the :class:`~ttd3_jax.td3.config.Hyper` pytree
-and the seeds.  The CLI parses it with tyro, ``config.json`` stores it whole, and resume
-and evaluation rebuild the run from it alone.  :func:`preset` gives the documented ones.
+"""The run spec: one object that says everything a training run is (the env, the static
+``TrainConfig``, the ``Hyper`` pytree, the seeds).  The CLI parses it with tyro,
+``config.json`` stores it whole, and resume and evaluation rebuild the run from it alone.
 """
 
 from __future__ import annotations

@@ -1,10 +1,6 @@
-"""The controller protocol, the closed loop and its metrics (spec §2.5).
-
-A :class:`Controller` is a pair of pure functions ``init(env_state) -> carry`` and
-``act(carry, env_state) -> (action, carry)`` returning a normalised action (4,).
-:func:`closed_loop` runs one for a whole episode as one ``lax.scan``; :func:`metrics`
-turns the episode into the paper's figures.  Anything that maps an observation to an
-action becomes a controller with :func:`policy_controller`.
+"""The controller protocol, the closed loop and its metrics (spec §2.5).  A
+:class:`Controller` is ``init(env_state) -> carry`` and ``act(carry, env_state) -> (action
+(4,), carry)``; :func:`closed_loop` runs one for an episode as one ``lax.scan``.
 """
 
 from __future__ import annotations

@@ -1,9 +1,6 @@
-"""Compiled evaluation of a controller family: batched metrics, traces and run times.
-
-:class:`Evaluator` compiles the evaluation programs of one controller family on one env
-once.  The family's parameters (a policy's weights, or ``None``) are an argument of every
-program, so the seeds of a training run share one compilation.  :func:`make_controller`
-builds the classical controllers by name.
+"""Compiled evaluation of a controller family: batched metrics, traces and run times.  The
+family's parameters (a policy's weights, or ``None``) are an argument of every program, so
+the seeds of a run share one compilation.  :func:`make_controller` builds classical ones.
 """
 
 from __future__ import annotations
@@ -94,14 +91,10 @@ def _signature(name, args):
 
 
 class Evaluator:
-    """Compiled programs that evaluate one controller family on one env.
-
-    ``build(theta)`` returns the controller for parameters ``theta``.  ``compile_s`` holds
-    the compile time of each program (its first compilation).  ``sequential=True`` runs a
-    batch of tracks one after the other (``lax.map``) instead of ``vmap``: use it for
-    controllers whose ``lax.cond`` must stay a branch (NMPC with ``solve_every > 1``; under
-    ``vmap`` both sides of a ``cond`` run at every step).
-    """
+    """Compiled programs that evaluate one controller family (``build(theta)``) on one env;
+    ``compile_s`` holds each program's first compile time.  ``sequential=True`` runs a batch
+    of tracks one after the other (``lax.map``), for controllers whose ``lax.cond`` must stay
+    a branch (NMPC with ``solve_every > 1``: under ``vmap`` both sides run every step)."""
 
     def __init__(self, env: TrackingEnv, build: Build, sequential: bool = False):
         self.env, self.build, self.sequential = env, build, sequential
@@ -139,16 +132,11 @@ class Evaluator:
         return jax.device_get(out)
 
     def timing(self, theta, track: tr.Track, repeats: int = 3, warmup_steps: int = 10) -> dict:
-        """Run time of one episode on ``track`` (spec §2.5), measured after compilation:
-
-        * ``loop_s``: the episode driven step by step from Python, one call of a jitted
-          (controller + env step) function per control step, waiting for each action
-          (as the paper timed its controllers), mean of ``repeats`` runs;
-        * ``scan_s``: the same episode as one compiled ``lax.scan``, mean of ``repeats``;
-        * ``act_ms``: per-call latency of the jitted controller ``act`` alone, mean over
-          the episode's control steps (the env is stepped by a separate program);
-        * ``compile_*_s``: compile times of those programs (first compilation).
-        """
+        """Run time of one episode on ``track`` (spec §2.5) after compilation: ``loop_s``
+        drives it from Python, one jitted (controller + env step) call per control step,
+        waiting for each action, as the paper timed it; ``scan_s`` is one compiled
+        ``lax.scan``; ``act_ms`` the jitted ``act`` alone per call (means of ``repeats``
+        runs); ``compile_*_s`` those programs' compile times."""
         env, build, key = self.env, self.build, jax.random.PRNGKey(0)
 
         def start(theta, track):

@@ -147,7 +147,6 @@ class NMPC:
         m2 = p.mass**2 if self._newton else 1.0
         self._r = (cfg.w_input[0] / m2, *cfg.w_input[1:])
 
-    # ----------------------------------------------------------------- problem data
     def bounds(self, dtype) -> tuple[jax.Array, jax.Array]:
         n = self.cfg.horizon
         lb = jnp.broadcast_to(jnp.asarray(self._lb, dtype), (n, 4))
@@ -168,7 +167,6 @@ class NMPC:
         u = jnp.clip(u[:-1], lb, ub)
         return References(pos=pos[1:], vel=vel[1:], quat=quat[1:], u=u)
 
-    # ----------------------------------------------------------------- model and cost
     def rollout(self, x0: QuadState, U: jax.Array) -> QuadState:
         """States at nodes 1..N (each leaf with a leading axis N) under the ZOH plan ``U``."""
         cfg, params = self.cfg, self.params
@@ -193,7 +191,6 @@ class NMPC:
         du = U - ref.u
         return 0.5 * (jnp.sum(r * r) + jnp.sum(jnp.asarray(self._r, U.dtype) * du * du))
 
-    # ----------------------------------------------------------------- solver
     def _box_qp(self, H, g, lo, hi):
         """FISTA on min ½ΔᵀHΔ + gᵀΔ, lo ≤ Δ ≤ hi (Jacobi-scaled); returns Δ."""
         cfg = self.cfg

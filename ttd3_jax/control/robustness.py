@@ -33,12 +33,9 @@ ROBUSTNESS_CONDITIONS = tuple(ROBUSTNESS_DESCRIPTIONS)
 
 
 def robustness_conditions(cfg: EnvConfig) -> dict[str, EnvConfig]:
-    """Evaluation configs (``los_rt`` mode, all from ``cfg.for_eval``) of each robustness
-    condition.  The mass conditions change ``quad.mass`` and pin ``thrust_map_mass`` to the
-    nominal mass, so that a hover-centred action map does not learn about the change
-    either.  (Under ``thrust_units="mass_normalized"`` the mass has no effect on the model.)
-    One step of delay is one control step: 1 ms with the ``paper`` preset, 10 ms with
-    ``practical``."""
+    """Evaluation configs (``cfg.for_eval("los_rt")``) of each robustness condition.  The mass
+    conditions pin ``thrust_map_mass`` to the nominal mass, so that a hover-centred action map
+    does not learn of the change either.  A step of delay is one control step (1 or 10 ms)."""
     nominal = cfg.for_eval("los_rt")
     m0 = cfg.quad.mass if cfg.thrust_map_mass is None else cfg.thrust_map_mass
 

@@ -1,9 +1,6 @@
-"""The tracking environment's static configuration, its presets and command-line overrides.
-
-:class:`EnvConfig` holds every choice of the environment (units in comments); it is
-validated on construction, so a bad value fails before anything compiles.  Build the
-documented presets with :func:`make_config`; change fields with ``dataclasses.replace``.
-docs/paper-notes.md gives the reading of the paper behind each default.
+"""The tracking env's static configuration and presets.  :class:`EnvConfig` is validated on
+construction, so a bad value fails before anything compiles; docs/paper-notes.md gives the
+reading of the paper behind each default.
 """
 
 from __future__ import annotations

@@ -110,12 +110,8 @@ class QuadState:
     def hover(cls, p=(0.0, 0.0, 0.0), dtype=None) -> QuadState:
         """At rest, level, at position ``p``."""
         dtype = dtype or jnp.zeros(()).dtype
-        return cls(
-            p=jnp.asarray(p, dtype),
-            v=jnp.zeros(3, dtype),
-            q=jnp.array([1.0, 0.0, 0.0, 0.0], dtype),
-            w=jnp.zeros(3, dtype),
-        )
+        zero = jnp.zeros(3, dtype)
+        return cls(p=jnp.asarray(p, dtype), v=zero, q=jnp.array([1.0, 0.0, 0.0, 0.0], dtype), w=zero)
 
 
 def quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
@@ -202,14 +198,9 @@ def rate_derivative(params: QuadParams, w: jax.Array, w_cmd: jax.Array) -> jax.A
 
 def derivative(params: QuadParams, x: QuadState, u: jax.Array,
                accel_ext: jax.Array | None = None) -> QuadState:  # fmt: skip
-    """Continuous-time ``ẋ = f(x, u)``.
-
-    Args:
-      x: state; u: (4,) control ``[thrust, ω_cmd]``; accel_ext: optional (3,) extra
-        world-frame acceleration in m/s^2 (wind, disturbances).
-    Under ``rate_model="instant"`` the commanded rate drives the attitude directly
-    and the stored ``w`` does not move (:func:`rk4_step` sets it to ``ω_cmd``).
-    """
+    """Continuous-time ``ẋ = f(x, u)`` for control ``u`` (4,) ``[thrust, ω_cmd]`` and an
+    optional extra world-frame acceleration ``accel_ext`` (3,) m/s^2 (wind).  Under
+    ``rate_model="instant"`` ω_cmd drives the attitude and the stored ``w`` does not move."""
     c = collective_accel(params, u[0])
     w_cmd = u[1:4]
     g = jnp.asarray([0.0, 0.0, params.gravity], x.v.dtype)
@@ -230,12 +221,8 @@ def _axpy(a, dx: QuadState, x: QuadState) -> QuadState:
 def rk4_step(params: QuadParams, x: QuadState, u: jax.Array, dt: float,
              accel_ext: jax.Array | None = None, substeps: int = 1,
              renormalize: bool = True) -> QuadState:  # fmt: skip
-    """Advance ``x`` by ``dt`` seconds under zero-order-hold ``u`` (spec D7).
-
-    ``substeps`` RK4 steps of ``dt / substeps`` each; then, if ``renormalize``,
-    ``q`` is projected back to unit norm.  Under the ``instant`` rate model the
-    stored rates become ``ω_cmd``.
-    """
+    """Advance ``x`` by ``dt`` seconds under zero-order-hold ``u`` (spec D7): ``substeps`` RK4
+    steps, then ``q`` back to unit norm if ``renormalize`` (``instant`` model: ``w = ω_cmd``)."""
     h = dt / substeps
     for _ in range(substeps):  # static, small: unrolled
         k1 = derivative(params, x, u, accel_ext)

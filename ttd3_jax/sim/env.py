@@ -134,32 +134,13 @@ class TrackingEnv(Env):
         self._effort_w = tuple(float(w) for w in c.effort_weights)
         self._rates_in_obs = c.quad.rate_model != "instant"
 
-    # Brax Env interface ----------------------------------------------------------------
-    @property
-    def observation_size(self) -> int:
-        return 20 if self._rates_in_obs else 17
-
-    @property
-    def action_size(self) -> int:
-        return 4
-
-    @property
-    def backend(self) -> str:
-        return "jax"
-
-    @property
-    def dt(self) -> float:
-        """Seconds per env step."""
-        return self.config.control_dt
-
-    @property
-    def episode_length(self) -> int:
-        return self.config.episode_length
-
-    @property
-    def num_segments(self) -> int:
-        """Static segment-table size of this env's tracks."""
-        return self._n_seg
+    # the Brax Env interface; dt is seconds per env step, num_segments the static track-table size
+    observation_size = property(lambda self: 20 if self._rates_in_obs else 17)
+    action_size = property(lambda self: 4)
+    backend = property(lambda self: "jax")
+    dt = property(lambda self: self.config.control_dt)
+    episode_length = property(lambda self: self.config.episode_length)
+    num_segments = property(lambda self: self._n_seg)
 
     def reset(self, rng: jax.Array) -> State:
         """New episode: a track drawn per ``config.track`` and an initial state (R5)."""
@@ -337,12 +318,9 @@ def yaw_of(q: jax.Array) -> jax.Array:
 
 @jax.custom_jvp
 def _zero_non_finite(x: jax.Array) -> jax.Array:
-    """``x`` with its NaN and inf entries set to +0.0 (the same values as
-    ``jnp.where(jnp.isfinite(x), x, 0.0)``, and the same derivative).
-
-    The test reads the exponent bits, so that ``x`` is used once: XLA:CPU then fuses the
-    observation's concatenation into the mask instead of writing it out first
-    (benchmarks/env_throughput.py)."""
+    """``x`` with its NaN and inf entries set to +0.0, as ``jnp.where(jnp.isfinite(x), x, 0)``
+    (values and derivative), but testing the exponent bits so that ``x`` is read once: XLA:CPU
+    then fuses the observation's concatenation into the mask instead of writing it out."""
     return _mask_bits(x)
 
 
@@ -362,8 +340,6 @@ def _zero_non_finite_jvp(primals, tangents):
 
 
 def _finite(x: QuadState) -> jax.Array:
-    """True when every state entry is finite (a NaN or inf anywhere makes the sum non-finite).
-
-    The entries are added one by one rather than with ``jnp.sum``: a reduction would end
-    the step's fusion on XLA:CPU (benchmarks/env_throughput.py)."""
+    """True when every state entry is finite (a NaN or inf anywhere makes the sum non-finite);
+    added one by one, since a ``jnp.sum`` reduction would end the step's fusion on XLA:CPU."""
     return jnp.isfinite(sum(leaf[..., i] for leaf in jax.tree.leaves(x) for i in range(leaf.shape[-1])))

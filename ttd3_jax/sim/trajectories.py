@@ -1,8 +1,8 @@
 """Reference trajectories: Spiral-RT, LOS-RT and the random training mixture (spec §2.3).
 
-Every track is a :class:`Track`, a small pytree of parameters from which the
-reference position, velocity and acceleration at any control step ``k`` are
-evaluated in O(1) (:func:`evaluate`).  Two families cover everything:
+Every track is a :class:`Track`, a small pytree of parameters from which the reference
+position, velocity and acceleration at any step ``k`` are evaluated in O(1)
+(:func:`evaluate`).  Two families cover everything:
 
 * ``kind == SPIRAL``: ``p(τ) = (a τ cos(Ωτ+φ), a τ sin(Ωτ+φ), c τ)`` with
   ``τ = s · k · dt`` (s = ``time_scale``).  The paper's Spiral-RT is
@@ -109,24 +109,11 @@ class Track:
     first_step: jax.Array  # int32, steps before it are at the origin
     seg: jax.Array  # (n_seg, 3, 3): rows P_j (m), V_j (m/s), A_j (m/s^2); one gather per lookup
 
-    @property
-    def seg_p(self) -> jax.Array:
-        """(..., n_seg, 3) m, segment start positions P_j."""
-        return self.seg[..., 0, :]
-
-    @property
-    def seg_v(self) -> jax.Array:
-        """(..., n_seg, 3) m/s, segment start velocities V_j."""
-        return self.seg[..., 1, :]
-
-    @property
-    def seg_a(self) -> jax.Array:
-        """(..., n_seg, 3) m/s^2, segment accelerations A_j."""
-        return self.seg[..., 2, :]
-
-    @property
-    def num_segments(self) -> int:
-        return self.seg.shape[-3]
+    # (..., n_seg, 3): segment start positions P_j (m), start velocities V_j (m/s), accelerations A_j
+    seg_p = property(lambda self: self.seg[..., 0, :])
+    seg_v = property(lambda self: self.seg[..., 1, :])
+    seg_a = property(lambda self: self.seg[..., 2, :])
+    num_segments = property(lambda self: self.seg.shape[-3])
 
 
 @struct.dataclass

@@ -1,11 +1,8 @@
 """Replay buffer held on the device: a ring of transitions, written one env batch at a time.
 
 The capacity is a multiple of the number of parallel envs, so every insert is one
-``dynamic_update_slice`` of ``num_envs`` rows at ``pos`` (no wrap-around split), and
-sampling is one ``randint`` gather.  Nothing is O(capacity) per step.
-
-Row ``r`` holds env ``r % num_envs``; that env's next transition is at row
-``r + num_envs`` (mod capacity).
+``dynamic_update_slice`` of ``num_envs`` rows at ``pos``, and sampling is one ``randint``
+gather: nothing is O(capacity) per step.  Row ``r`` holds env ``r % num_envs``.
 """
 
 from __future__ import annotations

@@ -1,9 +1,6 @@
-"""The trainer's configuration: static settings apart from numeric hyperparameters.
-
-:class:`TrainConfig` (frozen) fixes shapes, loop lengths and switches: changing it means a
-new compiled program.  :class:`Hyper` is a pytree of numbers the compiled program takes as
-an argument, so a sweep over seeds and hyperparameters is a ``vmap`` of one program.
-Counts are env transitions unless stated.
+"""The trainer's configuration.  :class:`TrainConfig` (frozen) fixes shapes, loop lengths and
+switches: changing it means a new compiled program.  :class:`Hyper` is a pytree of numbers
+the program takes as an argument, so a sweep over them is a ``vmap`` of one program.
 """
 
 from __future__ import annotations

@@ -1,8 +1,6 @@
-"""Running observation normalisation (mean / std over every observation collected).
-
-The statistics live in the train state (so checkpoints and resume carry them); the
-replay buffer keeps raw observations and minibatches are normalised with the current
-statistics when they are used, as Brax's trainers do.
+"""Running observation normalisation (mean / std over every observation collected).  The
+statistics live in the train state; the buffer keeps raw observations, and minibatches are
+normalised with the current statistics when used, as Brax's trainers do.
 """
 
 from __future__ import annotations

@@ -213,12 +213,9 @@ def actor_update(s: Setup, ts: TrainState, hp: Hyper, batch: rb.Transition):
 
 
 def update(s: Setup, ts: TrainState, hp: Hyper, key: jax.Array, j: jax.Array):
-    """One critic step, the σ update and, every d-th update, the actor + target step.
-
-    ``j`` is this update's index within its vector step (from the scan, so it is not
-    batched under a seed ``vmap``).  When G is a multiple of d every vector step starts
-    at n_upd ≡ 0 (mod d), so "every d-th update" is decided by ``j`` alone and the
-    ``lax.cond`` stays a branch under ``vmap`` instead of becoming a select."""
+    """One critic step, the σ update and, every d-th update, the actor + target step.  ``j``
+    is the update's index in its vector step (not batched under a seed ``vmap``): when G is a
+    multiple of d, ``j`` alone decides, so the ``lax.cond`` stays a branch under ``vmap``."""
     c = s.config
     k_batch, k_target = jax.random.split(key)
     batch = rb.sample(ts.buffer, k_batch, c.batch_size)
