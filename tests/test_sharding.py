@@ -27,30 +27,36 @@ EXPECTED = (
 )
 
 
-def test_sharded_on_four_cpu_devices():
+def run_sharded_check(*args: str) -> list[str]:
     """tests/_sharded_check.py in a fresh process that sees 4 CPU devices (the device count
-    is fixed when JAX starts, so it cannot run in this process).
+    is fixed when JAX starts, so it cannot run in this process); its stdout lines.
 
     It compares sharded with unsharded programs, both compiled in that process with the
-    same flags, so LLVM's optimisation level cannot matter to what it checks.  At -O0 the
-    script ran in 102 s instead of 134 s on the project's 2-core VM (2026-12-02), since
-    compiling dominates it; its numbers then differ in the last bits from -O2's, on both
-    sides alike."""
+    same flags, so LLVM's optimisation level cannot matter to what it checks: at -O0 it
+    compiles in about two thirds of the time."""
     flags = "--xla_force_host_platform_device_count=4 --xla_backend_optimization_level=0"
     env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
     p = subprocess.run(
-        [sys.executable, os.path.join(HERE, "_sharded_check.py")],
-        env=env,
-        cwd=os.path.dirname(HERE),
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+        [sys.executable, os.path.join(HERE, "_sharded_check.py"), *args],
+        env=env, cwd=os.path.dirname(HERE), capture_output=True, text=True, timeout=900,
+    )  # fmt: skip
     output = f"--- stdout\n{p.stdout}\n--- stderr\n{p.stderr[-6000:]}"
     assert p.returncode == 0, f"_sharded_check.py exited with {p.returncode}\n{output}"
     lines = p.stdout.splitlines()
-    for want in EXPECTED:
+    for want in EXPECTED[: 3 if args == ("sweep",) else None]:
         assert any(line.startswith(want) for line in lines), f"missing {want!r}\n{output}"
+    return lines
+
+
+def test_sharded_sweeps_on_four_cpu_devices():
+    """A sweep of 4 (seeds x beta) on 4 devices equals ``jit(vmap)``, with padding."""
+    run_sharded_check("sweep")
+
+
+@pytest.mark.slow
+def test_sharded_runner_on_four_cpu_devices():
+    """The runner on a 2 x 2 (seed, env) mesh equals the unsharded fused train, resume included."""
+    run_sharded_check()
 
 
 def _toy(k, b):

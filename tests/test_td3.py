@@ -257,12 +257,19 @@ def test_sweep_over_hyperparameters_is_one_vmapped_program():
     np.testing.assert_allclose(ts.critic_opt.hyperparams["learning_rate"], [1e-4, 1e-3], rtol=1e-6)
 
 
-def test_normalised_run_stores_stats_and_evaluates():
-    s = tiny(normalize_obs=True)
-    c, t = s.train, sp.trainer_for(s)
-    ts = jax.jit(t.init)(jax.random.PRNGKey(0), s.hp)
+@pytest.fixture(scope="module")
+def tiny_trainer():
+    """The ``tiny`` run's trainer and its state after warm-up (one init compile, shared)."""
+    s = tiny()
+    t = sp.trainer_for(s)
+    return s, t, jax.jit(t.init)(T.seed_keys(0, 1)[0], s.hp)
+
+
+def test_normalised_run_stores_stats_and_evaluates(tiny_trainer):
+    s, t, ts = tiny_trainer
+    c = s.train
     n0 = float(ts.obs_stats.count)
-    assert n0 == (c.warmup_steps + 1) * c.num_envs
+    assert c.normalize_obs and n0 == (c.warmup_steps + 1) * c.num_envs
     ts, m = jax.jit(t.epoch)(ts, s.hp)
     assert float(ts.obs_stats.count) == n0 + c.steps_per_epoch * c.num_envs
     assert np.isfinite(float(jax.jit(t.evaluate)(ts)["spiral_tracking_error"]))
@@ -328,13 +335,11 @@ def test_model_actor_loss_is_the_rollout_return_and_its_gradient_matches_finite_
     assert abs(an) > 1e-4  # a real gradient, not zero
 
 
-def test_one_transition_through_the_update_functions():
+def test_one_transition_through_the_update_functions(tiny_trainer):
     """``update`` is the critic step, the σ update and (every d-th update) the actor step:
     its results equal calling ``critic_update`` / ``actor_update`` by hand on the same batch."""
-    s = tiny()  # the paper's actor update
-    setup = sp.trainer_for(s).setup
-    hp, key = s.hp, jax.random.PRNGKey(5)
-    ts = jax.jit(sp.trainer_for(s).init)(T.seed_keys(0, 1)[0], hp)
+    s, t, ts = tiny_trainer  # the paper's actor update
+    setup, hp, key = t.setup, s.hp, jax.random.PRNGKey(5)
     out, (c_loss, a_loss, _) = jax.jit(lambda ts: T.update(setup, ts, hp, key, jnp.asarray(1)))(ts)
     k_batch, k_target = jax.random.split(key)
     batch = rb.sample(ts.buffer, k_batch, s.train.batch_size)

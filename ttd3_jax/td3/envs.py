@@ -9,8 +9,6 @@ Brax ``reset`` / ``step`` API whose ``info`` carries ``"truncation"`` and ``"ter
 
 from __future__ import annotations
 
-import contextlib
-import io
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -70,15 +68,12 @@ class _WithTerminated:
 def brax(name: str, backend: str = "mjx", episode_length: int = 1000, eval_episodes: int = 10) -> EnvSpec:
     """Brax env ``name`` with a time limit of ``episode_length`` steps; evaluated by the mean
     undiscounted return of ``eval_episodes`` deterministic episodes (``eval_return``)."""
-    # mujoco.mjx (imported by brax) prints "Failed to import warp" when the optional GPU
-    # package is absent; keep that out of our output
-    with contextlib.redirect_stdout(io.StringIO()):
-        from brax import envs as brax_envs
-        from brax.envs.wrappers.training import EpisodeWrapper
+    # brax's envs import here, not at the top: a quadrotor run never loads them (sim.env has
+    # already silenced mujoco.mjx's import message)
+    from brax import envs as brax_envs
+    from brax.envs.wrappers.training import EpisodeWrapper
 
-        env = EpisodeWrapper(
-            brax_envs.get_environment(name, backend=backend), episode_length, action_repeat=1
-        )
+    env = EpisodeWrapper(brax_envs.get_environment(name, backend=backend), episode_length, action_repeat=1)
     env = _WithTerminated(env)
 
     def evaluate(policy):
