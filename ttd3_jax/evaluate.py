@@ -1,11 +1,13 @@
 """``python -m ttd3_jax.evaluate``: a trained policy or a classical controller in closed loop
-on Spiral-RT and LOS-RT (spec §2.5): the table, run times, optional robustness, JSON,
-plots and trace CSVs.
+on Spiral-RT and LOS-RT (spec §2.5), your own track (a CSV file) or the generalisation
+suite: the table, run times, optional robustness, JSON, plots and trace CSVs.
 
     python -m ttd3_jax.evaluate --controller geometric        # Spiral-RT and LOS-RT seed 0
     python -m ttd3_jax.evaluate --controller nmpc --nmpc-solve-every 10
     python -m ttd3_jax.evaluate --controller geometric --task.quad.mass 1.8   # any EnvConfig field
     python -m ttd3_jax.evaluate RUN_DIR [--epoch E | --best] [--seed-index I] [--robustness]
+    python -m ttd3_jax.evaluate RUN_DIR --track my_track.csv      # header t,x,y,z[,vx,vy,vz,ax,ay,az]
+    python -m ttd3_jax.evaluate --controller nmpc --suite generalization
 """
 
 from __future__ import annotations
@@ -20,12 +22,20 @@ import sys
 import tyro
 
 from ttd3_jax import report, runs
-from ttd3_jax.control.evaluator import CONTROLLERS, Evaluator, controller_build, evaluate_controller
+from ttd3_jax.control import generalization as gen
+from ttd3_jax.control.evaluator import (
+    CONTROLLERS,
+    Evaluator,
+    controller_build,
+    evaluate_controller,
+    evaluate_tracks,
+)
 from ttd3_jax.control.nmpc import NMPCConfig
 from ttd3_jax.control.paper import PAPER
 from ttd3_jax.control.robustness import ROBUSTNESS_DESCRIPTIONS, evaluate_robustness
+from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import trajectories as tr
-from ttd3_jax.sim.config import EVAL_PROTOCOL_FIELDS, PRESETS, EnvConfig, make_config
+from ttd3_jax.sim.config import EVAL_CRASH_M, EVAL_PROTOCOL_FIELDS, PRESETS, EnvConfig, make_config
 from ttd3_jax.sim.env import TrackingEnv
 
 _NMPC_OPTIONS = (("horizon", "nmpc_horizon"), ("solve_every", "nmpc_solve_every"),
@@ -48,7 +58,13 @@ def build_parser() -> argparse.ArgumentParser:
     add("--best", action="store_true", help="RUN_DIR's policies selected on the validation tracks (best/)")
     add("--seed-index", type=int, default=None, help="only this seed of RUN_DIR (default: all)")
     add("--preset", default=None, choices=PRESETS, help="env preset of --controller (default paper)")
-    add("--track", default="all", choices=("all", *tr.TEST_TRACKS))
+    add(
+        "--track",
+        default="all",
+        help=f"all (default), {', '.join(tr.TEST_TRACKS)}, or a CSV file with header "
+        "t,x,y,z [s, m] and optional vx,vy,vz,ax,ay,az (the episode lasts as long as the track)",
+    )
+    add("--suite", default=None, choices=gen.SUITES, help="the generalisation suite's tracks instead")
     add("--los-seed", type=int, default=0, help="LOS-RT test instance (0 = headline)")
     add("--json", default=None, help="write results here (default RUN_DIR/evaluation.json)")
     add("--plots", default=None, help="write plots and trace CSVs here (default: the JSON file's directory)")
@@ -72,6 +88,16 @@ def check_args(ap: argparse.ArgumentParser, args) -> dict:
         if value < lo:
             ap.error(f"{flag} must be >= {lo}, got {value}")
     options = {k: getattr(args, a) for k, a in _NMPC_OPTIONS if getattr(args, a) is not None}
+    args.custom = None
+    if args.track not in ("all", *tr.TEST_TRACKS):
+        if args.suite is not None:
+            ap.error("--suite and --track FILE exclude each other")
+        try:
+            args.custom = ct.from_csv(args.track)
+        except ValueError as e:
+            ap.error(f"--track: {e}")
+    elif args.suite is not None and args.track != "all":
+        ap.error(f"--suite runs its own tracks; remove --track {args.track}")
     if options and (args.run_dir is not None or args.controller != "nmpc"):
         ap.error("--nmpc-* options need --controller nmpc")
     if args.run_dir is not None:
@@ -161,6 +187,26 @@ def write_outputs(args, out: dict, traces: dict, title: str) -> None:
         print(f"wrote {len(paths)} plots and {len(csvs)} trace CSVs ({names}) to {plots}")
 
 
+def evaluator_for(args, cfg: EnvConfig, build, sequential: bool) -> tuple[Evaluator, dict | None]:
+    """The :class:`Evaluator` of the tracks the flags name, and those tracks by name
+    (``None``: the test tracks).  A CSV track sets the episode's length."""
+    eval_cfg = cfg.for_eval("los_rt", los_seed=args.los_seed)
+    tracks = None
+    if args.custom is not None:
+        c = args.custom
+        steps = c.episode_steps(cfg.action_repeat)
+        if steps < cfg.action_repeat:
+            raise ValueError(f"--track {args.track}: {c.duration_s:g} s is shorter than one control step "
+                             f"({cfg.control_dt:g} s)")  # fmt: skip
+        eval_cfg = dataclasses.replace(eval_cfg, episode_steps=steps)
+        tracks = {c.name: c.track()}
+        print(f"track {c.name}: {c.duration_s:g} s ({steps} physics steps evaluated); after its last sample "
+              "the reference holds the last point")  # fmt: skip
+    elif args.suite is not None:
+        tracks = gen.suite_tracks(args.suite, cfg.dt)
+    return Evaluator(TrackingEnv(eval_cfg), build, sequential), tracks
+
+
 def split_task_args(argv: list[str]) -> tuple[list[str], list[str]]:
     """``argv`` without, and with only, the ``--task.FIELD VALUE...`` flags (values are the
     tokens up to the next ``--`` flag)."""
@@ -170,6 +216,23 @@ def split_task_args(argv: list[str]) -> tuple[list[str], list[str]]:
             into = task if a.startswith("--task.") else rest
         (rest if into is None else into).append(a)
     return rest, task
+
+
+def notes(args, cfg: EnvConfig, tracks: dict | None, header: dict) -> None:
+    """What the table's figures mean, printed under it (and the suite's part of ``header``)."""
+    print(f"control rate {1 / cfg.control_dt:g} Hz (physics {1 / cfg.dt:g} Hz); crash: ||e|| > "
+          f"{EVAL_CRASH_M:g} m at any physics step, the same threshold for every controller")  # fmt: skip
+    if tracks is None:
+        print(report.format_paper())
+    elif args.suite:
+        header["suite"] = dict(name=args.suite, tracks=gen.DESCRIPTIONS, steady_after_s=gen.STEADY_AFTER_S)
+        for name, text in gen.DESCRIPTIONS.items():
+            print(f"  {name}: {text}")
+        print(f"steady: mean ||e|| after {gen.STEADY_AFTER_S:g} s; overshoot: how far past the step's "
+              "target, % of the step")  # fmt: skip
+    if args.timing:
+        print(f"loop s: Python loop over a jitted controller+env step (mean of {args.repeats}); scan s: one "
+              "compiled scan; act ms: jitted act alone per call")  # fmt: skip
 
 
 def main(argv=None) -> int:
@@ -182,25 +245,27 @@ def main(argv=None) -> int:
         args.controller, args.preset = args.controller or "geometric", args.preset or "paper"
     options = check_args(ap, args)
     device = report.device_description()
+    sequential = args.run_dir is None and args.controller == "nmpc" and options.get("solve_every", 1) > 1
     try:
         cfg, build, labels, header = policies(args) if args.run_dir else classical(args, options)
+        ev, tracks = evaluator_for(args, cfg, build, sequential)
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(f"device={device}")
-    header.update(device=device, los_seed=args.los_seed, env_config=dataclasses.asdict(cfg))
-    sequential = args.run_dir is None and args.controller == "nmpc" and options.get("solve_every", 1) > 1
-    tracks = tr.TEST_TRACKS if args.track == "all" else (args.track,)
-    ev = Evaluator(TrackingEnv(cfg.for_eval("los_rt", los_seed=args.los_seed)), build, sequential)
+    header.update(device=device, los_seed=args.los_seed, env_config=dataclasses.asdict(cfg),
+                  crash_threshold_m=EVAL_CRASH_M, control_hz=1 / cfg.control_dt,
+                  episode_s=ev.env.config.episode_steps * cfg.dt)  # fmt: skip
     results, traces = {}, {}
     for label, theta in labels.items():
-        results[label], traces[label] = evaluate_controller(ev, theta, args.los_seed, tracks, args.timing,
-                                                            args.repeats)  # fmt: skip
+        if tracks is None:
+            which = tr.TEST_TRACKS if args.track == "all" else (args.track,)
+            results[label], traces[label] = evaluate_controller(ev, theta, args.los_seed, which, args.timing,
+                                                                args.repeats)  # fmt: skip
+        else:
+            results[label], traces[label] = evaluate_tracks(ev, theta, tracks, args.timing, args.repeats)
     print(report.format_results(results, args.timing))
-    print(report.format_paper())
-    if args.timing:
-        print(f"loop s: Python loop over a jitted controller+env step (mean of {args.repeats}); scan s: one "
-              "compiled scan; act ms: jitted act alone per call")  # fmt: skip
+    notes(args, cfg, tracks, header)
     out: dict = dict(header, results=results, paper=PAPER)
     if args.robustness:
         seeds = range(1, args.robustness_seeds + 1)

@@ -13,10 +13,14 @@ import numpy as np
 
 from ttd3_jax.control.evaluator import Trace
 from ttd3_jax.control.paper import PAPER, PAPER_TTD3
-from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.env import yaw_of
 
 TRACK_TITLES = {"spiral_rt": "Spiral-RT", "los_rt": "LOS-RT"}
+
+
+def track_names(traces: dict[str, dict]) -> list[str]:
+    """The tracks of ``{label: {track: ...}}`` in order of first appearance."""
+    return list(dict.fromkeys(t for v in traces.values() for t in v))
 
 
 def plot_traces(traces: dict[str, dict[str, Trace]], out_dir: str, title: str = "", los_seed: int = 0,
@@ -28,7 +32,7 @@ def plot_traces(traces: dict[str, dict[str, Trace]], out_dir: str, title: str = 
     exceeds ``e_show`` m; ``action_note`` is appended to the action plot's title."""
     plt = _pyplot()
     os.makedirs(out_dir, exist_ok=True)
-    tracks = [t for t in tr.TEST_TRACKS if any(t in v for v in traces.values())]
+    tracks = track_names(traces)
     paths = []
     for track in tracks:
         runs = {label: v[track] for label, v in traces.items() if track in v}
@@ -127,7 +131,7 @@ def write_traces(traces: dict[str, dict[str, Trace]], out_dir: str, prefix: str 
     quaternion and its yaw (rad, z-y-x) (columns ``TRACE_COLUMNS``).  The plots of
     :func:`plot_traces` draw from the same data."""
     os.makedirs(out_dir, exist_ok=True)
-    tracks = [t for t in tr.TEST_TRACKS if any(t in v for v in traces.values())]
+    tracks = track_names(traces)
     paths = []
     for track in tracks:
         path = os.path.join(out_dir, f"{prefix}{track}_trace.csv")
@@ -168,18 +172,23 @@ def json_safe(x):
 _COLUMNS = (("Σ||e|| [m]", "tracking_error", "11.2f"), ("RMSE [m]", "rmse", "9.4f"),
             ("max [m]", "max_error", "8.4f"), ("crash", "crashed", "5.0f"), ("Σ||a||", "energy", "8.1f"),
             ("Σaᵀa", "energy_sq", "8.1f"))  # fmt: skip
+_RATE = (("Hz", "control_hz", "5.0f"),)
+_PRECISION = (("steady [m]", "steady_error", "10.4f"), ("overshoot %", "overshoot", "11.1f"))
 _TIMING = (("steps", "control_steps", "5d"), ("compile s", "compile_scan_s", "9.2f"),
            ("loop s", "loop_s", "7.3f"), ("scan s", "scan_s", "7.3f"),
            ("act ms", "act_ms", "7.3f"))  # fmt: skip
 
 
 def format_results(results: dict[str, dict[str, dict]], timing: bool) -> str:
-    """The evaluation table: one row per (label, track)."""
-    cols = _COLUMNS + (_TIMING if timing else ())
-    head = f"{'':<14} {'track':<10} " + " ".join(
+    """The evaluation table: one row per (label, track); the precision columns where the
+    results have them (:func:`~ttd3_jax.control.evaluator.evaluate_tracks`)."""
+    any_m = next(iter(next(iter(results.values())).values()))
+    cols = _COLUMNS + _RATE + (_PRECISION if "steady_error" in any_m else ()) + (_TIMING if timing else ())
+    width = max(10, *(len(n) for per in results.values() for n in per))
+    head = f"{'':<14} {'track':<{width}} " + " ".join(
         f"{t:>{int(f.split('.')[0].rstrip('d'))}}" for t, _, f in cols
     )
-    rows = [f"{label:<14} {name:<10} " + " ".join(fmt(m[k], f) for _, k, f in cols)
+    rows = [f"{label:<14} {name:<{width}} " + " ".join(fmt(m[k], f) for _, k, f in cols)
             for label, per_track in results.items() for name, m in per_track.items()]  # fmt: skip
     return "\n".join([head, *rows])
 

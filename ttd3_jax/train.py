@@ -3,6 +3,7 @@
     python -m ttd3_jax.train                          # preset "fast": quadrotor, T-TD3, 1 seed
     python -m ttd3_jax.train --preset fast_dpg --algo td3 --num-seeds 3
     python -m ttd3_jax.train --task.e-max 1.5 --hp.lr-actor 5e-4   # any field of the run spec
+    python -m ttd3_jax.train --train-tracks my_tracks/ # + your CSV tracks in the training mixture
     python -m ttd3_jax.train --resume runs/RUN_DIR    # continue from the newest checkpoint
     python -m ttd3_jax.train --help                   # every option, its default and units
 
@@ -14,6 +15,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import os
 import sys
 
 import tyro
@@ -22,12 +24,30 @@ from ttd3_jax import runs
 from ttd3_jax import spec as sp
 from ttd3_jax.cache import use_compile_cache
 from ttd3_jax.runner import TrainingDiverged, run
+from ttd3_jax.sim import custom_tracks as ct
 
 DESCRIPTION = (
     "Train T-TD3 or TD3 (preset {preset!r}; defaults below are that preset's). Also: "
     "--preset {presets}, --out DIR (default runs), --resume RUN_DIR, "
-    "--compile-cache DIR|none (XLA compilation cache; default ~/.cache/ttd3_jax/xla)."
+    "--compile-cache DIR|none (XLA compilation cache; default ~/.cache/ttd3_jax/xla), "
+    "--train-tracks CSV|DIR (your tracks in the training mixture, in a share "
+    "--task.train-tracks-weight of the episodes)."
 )
+
+
+def track_files(path: str) -> tuple[str, ...]:
+    """``--train-tracks``: one CSV file, or every ``*.csv`` in a directory (absolute paths)."""
+    if os.path.isdir(path):
+        files = sorted(os.path.join(path, f) for f in os.listdir(path) if f.endswith(".csv"))
+        if not files:
+            raise ValueError(f"--train-tracks {path!r}: the directory holds no .csv file")
+    elif os.path.isfile(path):
+        files = [path]
+    else:
+        raise ValueError(f"--train-tracks {path!r}: no such file or directory")
+    for f in files:
+        ct.from_csv(f)  # a bad file is refused now, naming it, not when the env is built
+    return tuple(os.path.abspath(f) for f in files)
 
 
 def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
@@ -38,9 +58,11 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
     pre.add_argument("--out", default=None)
     pre.add_argument("--resume", default=None)
     pre.add_argument("--compile-cache", default=None)
+    pre.add_argument("--train-tracks", default=None)
     known, rest = pre.parse_known_args(argv)
     if known.resume is not None:
-        extra = [f"--{k}" for k in ("preset", "out") if getattr(known, k) is not None] + rest
+        given = [k for k in ("preset", "out", "train_tracks") if getattr(known, k) is not None]
+        extra = [f"--{k.replace('_', '-')}" for k in given] + rest
         if extra:
             raise ValueError(f"--resume continues the saved run spec; remove {' '.join(extra)}")
         return known, None
@@ -58,6 +80,9 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
         changed = [f.name for f in dataclasses.fields(spec.task) if getattr(spec.task, f.name) !=
                    getattr(default.task, f.name)]  # fmt: skip
         raise ValueError(f"--task.* sets the quadrotor env; env {spec.env!r} has none (changed: {changed})")
+    if known.train_tracks is not None:
+        task = dataclasses.replace(spec.task, train_tracks=track_files(known.train_tracks))
+        spec = dataclasses.replace(spec, task=task)
     known.out = known.out or "runs"
     runs.check_out_dir(known.out)
     return known, spec

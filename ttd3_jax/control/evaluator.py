@@ -23,8 +23,10 @@ from ttd3_jax.control.closed_loop import (
     sensed_controller,
     test_tracks,
 )
+from ttd3_jax.control.generalization import precision
 from ttd3_jax.control.geometric import geometric_controller
 from ttd3_jax.control.nmpc import NMPCConfig, nmpc_controller
+from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.env import TrackingEnv
@@ -194,11 +196,30 @@ def evaluate_controller(ev: Evaluator, theta=None, los_seed: int = 0, tracks=tr.
     for i, name in enumerate(tr.TEST_TRACKS):
         if name not in tracks:
             continue
-        res = {k: float(v[i]) for k, v in m.items()}
+        res = {k: float(v[i]) for k, v in m.items()} | {"control_hz": 1.0 / ev.env.config.control_dt}
         if timing:
             res.update(ev.timing(theta, index(batch, i), repeats))
         results[name] = res
         traces[name] = Trace.from_rollout(index(r, i), ev.env.config.control_dt)
+    return results, traces
+
+
+def evaluate_tracks(ev: Evaluator, theta, tracks: dict[str, tr.Track], timing: bool = True,
+                    repeats: int = 3) -> tuple[dict, dict]:  # fmt: skip
+    """Like :func:`evaluate_controller` on any named tracks (one compiled batch), with the
+    precision figures of :func:`~ttd3_jax.control.generalization.precision`."""
+    names, cdt = list(tracks), ev.env.config.control_dt
+    batch = ct.stack([tracks[n] for n in names], ev.env.config.dt)
+    r, m = ev.rollouts(theta, batch)
+    results, traces = {}, {}
+    for i, name in enumerate(names):
+        ri = index(r, i)
+        results[name] = (
+            {k: float(v[i]) for k, v in m.items()} | precision(ri, cdt, name) | {"control_hz": 1 / cdt}
+        )
+        if timing:
+            results[name].update(ev.timing(theta, index(batch, i), repeats))
+        traces[name] = Trace.from_rollout(ri, cdt)
     return results, traces
 
 

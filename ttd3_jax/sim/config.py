@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.dynamics import QuadParams, validate_params
@@ -18,8 +19,9 @@ OBS_FRAMES = ("world", "track")
 PRESETS = ("paper", "practical")
 CRASH_GAMMA = 0.99  # the discount the derived crash penalty is sized for (spec R4)
 # the fields EnvConfig.for_eval sets, and the episode length it keeps (keep them together)
-EVAL_PROTOCOL_FIELDS = ("track", "los_seed", "randomize_init", "terminate", "wind_sigma",
+EVAL_PROTOCOL_FIELDS = ("track", "los_seed", "randomize_init", "terminate", "wind_sigma", "e_max",
                         "obs_noise_pos", "obs_noise_vel", "obs_noise_quat", "episode_steps")  # fmt: skip
+EVAL_CRASH_M = 1.0  # m: every controller is judged crashed once its error exceeds this in evaluation
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,6 +69,9 @@ class EnvConfig:
     obs_noise_quat: float = 0.0  # std on each quaternion component (then renormalised)
     # robustness evaluation (not in the paper)
     action_delay: int = 0  # control steps between an action and its application (0 or 1)
+    # users' tracks in the training mixture (never the test or suite tracks)
+    train_tracks: tuple[str, ...] = ()  # CSV files read by sim.custom_tracks.from_csv
+    train_tracks_weight: float = 0.25  # probability that a training episode flies one of them
     thrust_map_mass: float | None = None  # kg: mass whose hover thrust the action map assumes
     #   under hover_centered_thrust (None = quad.mass); set to the nominal mass when quad.mass
     #   is changed, so that a mass error stays unknown to the action map (and the controller)
@@ -101,11 +106,11 @@ class EnvConfig:
 
     def for_eval(self, track: str, los_seed: int = 0, wind_sigma: float = 0.0) -> EnvConfig:
         """The evaluation protocol (spec §2.5): fixed track, start on p_d(0) at rest and
-        level, no early termination, no observation noise, optional wind.  It sets the
-        fields in ``EVAL_PROTOCOL_FIELDS`` (``episode_steps`` stays: 3000, the paper's)."""
-        quiet = dict(
-            randomize_init=False, terminate=False, obs_noise_pos=0.0, obs_noise_vel=0.0, obs_noise_quat=0.0
-        )
+        level, no early termination, no observation noise, optional wind, and one crash
+        threshold for every controller (``e_max = EVAL_CRASH_M``).  It sets the fields in
+        ``EVAL_PROTOCOL_FIELDS`` (``episode_steps`` stays: 3000, the paper's)."""
+        quiet = dict(randomize_init=False, terminate=False, e_max=EVAL_CRASH_M, obs_noise_pos=0.0,
+                     obs_noise_vel=0.0, obs_noise_quat=0.0)  # fmt: skip
         return dataclasses.replace(self, track=track, los_seed=los_seed, wind_sigma=wind_sigma, **quiet)
 
 
@@ -154,6 +159,11 @@ def _validate(c: EnvConfig) -> None:
     if not isinstance(c.quad, QuadParams):
         raise ValueError(f"EnvConfig.quad must be a QuadParams, got {type(c.quad).__name__}")
     validate_params(c.quad)
+    if not all(isinstance(p, str) and os.path.isfile(p) for p in c.train_tracks):
+        bad = next(p for p in c.train_tracks if not (isinstance(p, str) and os.path.isfile(p)))
+        raise ValueError(f"EnvConfig.train_tracks: {bad!r} is not a file; allowed: CSV track files")
+    if not 0 < _number(c, "train_tracks_weight") <= 1:
+        raise ValueError(f"EnvConfig.train_tracks_weight must be in (0, 1], got {c.train_tracks_weight!r}")
     if not isinstance(c.tracks, tr.TrackConfig):
         raise ValueError(f"EnvConfig.tracks must be a TrackConfig, got {type(c.tracks).__name__}")
 

@@ -36,10 +36,13 @@ from flax import struct
 with contextlib.redirect_stdout(io.StringIO()):
     from brax.envs.base import Env, State
 
+from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import rng
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.dynamics import QuadState, quat_from_axis_angle, quat_mul, rk4_step
+
+_USER_TAG = 0x05E7  # folded into a reset's track key to pick users' training tracks
 
 
 def error_cost(cfg: EnvConfig, e: jax.Array) -> jax.Array:
@@ -131,6 +134,11 @@ class TrackingEnv(Env):
             self._n_seg = tr.train_num_segments(c.horizon_steps, c.dt)
         else:
             self._n_seg = tr.num_segments_for(c.horizon_steps, c.tracks.los_segment_steps)
+        self._user = None  # users' training tracks, stacked, with the mixture's table size
+        if c.track == "train" and c.train_tracks:
+            user = [ct.from_csv(p, dt=c.dt).track() for p in c.train_tracks]
+            self._mix_n, self._n_seg = self._n_seg, max(self._n_seg, *(t.num_segments for t in user))
+            self._user = jax.tree.map(lambda *x: jnp.stack(x), *(ct.pad(t, self._n_seg, c.dt) for t in user))
         self._effort_w = tuple(float(w) for w in c.effort_weights)
         self._rates_in_obs = c.quad.rate_model != "instant"
 
@@ -151,7 +159,15 @@ class TrackingEnv(Env):
         """The track an episode uses under ``config.track``."""
         c, n = self.config, self._n_seg
         if c.track == "train":
-            return tr.sample_train_track(rng, c.tracks, c.dt, c.horizon_steps, n)
+            if self._user is None:
+                return tr.sample_train_track(rng, c.tracks, c.dt, c.horizon_steps, n)
+            mix = ct.pad(tr.sample_train_track(rng, c.tracks, c.dt, c.horizon_steps, self._mix_n), n, c.dt)
+            k_pick, k_use = jax.random.split(jax.random.fold_in(rng, _USER_TAG))
+            user = jax.tree.map(
+                lambda x: x[jax.random.randint(k_pick, (), 0, len(c.train_tracks))], self._user
+            )
+            use = jax.random.uniform(k_use) < c.train_tracks_weight
+            return jax.tree.map(lambda a, b: jnp.where(use, a, b), user, mix)
         if c.track == "validation":
             bank = tr.validation_tracks(c.tracks, c.dt, c.horizon_steps, n)
             i = jax.random.randint(rng, (), 0, tr.NUM_VALIDATION_TRACKS)

@@ -158,6 +158,13 @@ def _make(kind, *, n_seg, seg_steps=1, first_step=0, seg_p=None, seg_v=None, seg
     )
 
 
+def table(pos, vel, acc, seg_steps: int = 1) -> Track:
+    """A piecewise track from tables (n, 3) of segment start positions (m), velocities
+    (m/s) and accelerations (m/s^2), one segment every ``seg_steps`` control steps; after
+    the last segment it extrapolates that segment's motion (hold a point with v = a = 0)."""
+    return _make(PIECEWISE, n_seg=len(pos), seg_steps=seg_steps, seg_p=pos, seg_v=vel, seg_a=acc)
+
+
 def _spiral(track: Track, t: jax.Array):
     s = track.time_scale
     tau = s * t
