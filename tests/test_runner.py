@@ -67,7 +67,8 @@ def test_a_checkpoint_that_does_not_load_is_skipped_by_resume_and_evaluate(tmp_p
     assert _break_newest(part) == 2
     loaded = runs.load_train_state(part)
     assert loaded.epoch == 1 and [e for e, _ in loaded.skipped] == [2]
-    assert evaluate_main([part, "--no-timing", "--json", str(tmp_path / "e.json")]) == 0
+    # the training --out directory names its (only) run
+    assert evaluate_main([str(tmp_path / "b"), "--no-timing", "--json", str(tmp_path / "e.json")]) == 0
     err = capsys.readouterr().err
     assert "skipped checkpoint 2, which does not load" in err and "Traceback" not in err
     resumed = run(resume=part, verbose=True)
@@ -248,3 +249,25 @@ def test_brax_mjx_inverted_double_pendulum_smoke(tmp_path):
     assert np.isfinite(ret) and ret > 0  # IDP pays a positive alive bonus each step
     rows = runs.read_metrics(summary["run_dir"])
     assert len(rows) == 2 and rows[-1]["env_steps"] == 4 * (20 + 2 * 40)
+
+
+def test_find_run_takes_a_run_or_the_newest_run_under_an_out_directory(tmp_path):
+    for name, mtime in (("old", 1_000), ("new", 2_000)):
+        os.makedirs(tmp_path / name)
+        (tmp_path / name / "config.json").write_text("{}")
+        os.utime(tmp_path / name / "config.json", (mtime, mtime))
+    assert runs.find_run(str(tmp_path / "old")) == (str(tmp_path / "old"), None)
+    path, note = runs.find_run(str(tmp_path))
+    assert path == str(tmp_path / "new") and "holds 2 runs; using the newest, new" in note
+    os.makedirs(tmp_path / "empty")
+    with pytest.raises(FileNotFoundError, match="or its subdirectories: not a ttd3_jax run directory"):
+        runs.find_run(str(tmp_path / "empty"))
+
+
+def test_the_budget_rounding_to_whole_epochs_is_printed(tmp_path, capsys):
+    s = tiny()
+    s = sp.replace(s, total_transitions=s.train.total_transitions + 100)
+    assert s.train.transitions_run < s.train.total_transitions
+    run(s, out=str(tmp_path), verbose=True, stop_after=0)
+    out = capsys.readouterr().out
+    assert f"budget: {s.train.transitions_run:,} of total_transitions {s.train.total_transitions:,}" in out

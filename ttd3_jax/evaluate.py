@@ -101,6 +101,12 @@ def check_args(ap: argparse.ArgumentParser, args) -> dict:
     if options and (args.run_dir is not None or args.controller != "nmpc"):
         ap.error("--nmpc-* options need --controller nmpc")
     if args.run_dir is not None:
+        try:
+            args.run_dir, note = runs.find_run(args.run_dir)
+        except FileNotFoundError as e:
+            ap.error(str(e))
+        if note:
+            print(note)
         for flag, value in (("--controller", args.controller), ("--preset", args.preset),
                             ("--task.*", args.task_args or None)):  # fmt: skip
             if value is not None:

@@ -151,8 +151,9 @@ def write_traces(traces: dict[str, dict[str, Trace]], out_dir: str, prefix: str 
 
 
 def fmt(x: float, spec: str) -> str:
-    """``format(x, spec)``, with "inf" / "nan" for non-finite values."""
-    return format(x, spec) if math.isfinite(x) else "inf" if x > 0 else "nan"
+    """``format(x, spec)``, with "inf" / "nan" (padded to the width) for non-finite values."""
+    width = int(spec.split(".")[0].rstrip("dfe") or 0)
+    return format(x, spec) if math.isfinite(x) else f"{'inf' if x > 0 else 'nan':>{width}}"
 
 
 def json_safe(x):
@@ -188,7 +189,11 @@ def format_results(results: dict[str, dict[str, dict]], timing: bool) -> str:
     head = f"{'':<14} {'track':<{width}} " + " ".join(
         f"{t:>{int(f.split('.')[0].rstrip('d'))}}" for t, _, f in cols
     )
-    rows = [f"{label:<14} {name:<{width}} " + " ".join(fmt(m[k], f) for _, k, f in cols)
+
+    def cell(m, k, f):  # overshoot is defined for a step only
+        return f"{'-':>{len(fmt(0.0, f))}}" if k == "overshoot" and not math.isfinite(m[k]) else fmt(m[k], f)
+
+    rows = [f"{label:<14} {name:<{width}} " + " ".join(cell(m, k, f) for _, k, f in cols)
             for label, per_track in results.items() for name, m in per_track.items()]  # fmt: skip
     return "\n".join([head, *rows])
 

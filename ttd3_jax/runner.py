@@ -126,6 +126,10 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = 
     else:
         runs.check_out_dir(out)
     c = spec.train
+    if c.transitions_run != c.total_transitions:
+        log(f"budget: {c.transitions_run:,} of total_transitions {c.total_transitions:,} per seed "
+            f"({c.warmup_steps * c.num_envs:,} warm-up, then {c.epochs} epochs x {c.steps_per_epoch} vector "
+            f"steps x {c.env_steps_per_step} env steps x {c.num_envs} envs)")  # fmt: skip
     live = LiveBar(spec) if verbose and sys.stdout.isatty() else None
     trainer = sp.trainer_for(spec, on_progress=live)
     check_memory(spec, trainer.env.obs_size, trainer.env.action_size)

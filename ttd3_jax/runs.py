@@ -53,6 +53,20 @@ def new_run_dir(out: str, spec: sp.RunSpec) -> str:
     return path
 
 
+def find_run(path: str) -> tuple[str, str | None]:
+    """``(run_dir, note)``: ``path`` itself when it holds a ``config.json``, else the newest
+    run directly under it (a training ``--out`` directory), with a note naming the choice."""
+    if os.path.isfile(os.path.join(path, CONFIG)) or not os.path.isdir(path):
+        return path, None
+    found = sorted((e for e in os.scandir(path) if os.path.isfile(os.path.join(e.path, CONFIG))),
+                   key=lambda e: os.path.getmtime(os.path.join(e.path, CONFIG)))  # fmt: skip
+    if not found:
+        msg = f"no {CONFIG} in {path!r} or its subdirectories: not a ttd3_jax run directory"
+        raise FileNotFoundError(msg)
+    note = f"{path!r} holds {len(found)} runs; using the newest, {found[-1].name}" if len(found) > 1 else None
+    return found[-1].path, note
+
+
 def load_spec(run_dir: str) -> sp.RunSpec:
     """A run's spec from its ``config.json``; errors name the file and what is wrong."""
     path = os.path.join(run_dir, CONFIG)

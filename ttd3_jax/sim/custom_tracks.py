@@ -119,13 +119,15 @@ def from_function(f: Callable[[np.ndarray], np.ndarray], duration_s: float, *, d
 def from_csv(path: str, *, dt: float = 1e-3) -> CustomTrack:
     """A track from a CSV file (see the module docstring); errors name the file."""
     try:
-        with open(path, newline="") as fh:
-            rows = list(csv.reader(fh))
+        with open(path, newline="") as fh:  # (line number, cells); blank and "#" lines skipped
+            rows = [
+                (n, r) for n, r in enumerate(csv.reader(fh), 1) if r and not r[0].lstrip().startswith("#")
+            ]
     except OSError as e:
         raise ValueError(f"cannot read track file {path!r}: {e.strerror}") from None
     if not rows:
         raise ValueError(f"{path}: empty file; expected a header {','.join(CSV_REQUIRED)}")
-    head = [h.strip() for h in rows[0]]
+    head = [h.strip() for h in rows[0][1]]
     missing = [c for c in CSV_REQUIRED if c not in head]
     if missing:
         raise ValueError(f"{path}: header {head} lacks column(s) {missing}; required: {list(CSV_REQUIRED)}")
@@ -133,12 +135,26 @@ def from_csv(path: str, *, dt: float = 1e-3) -> CustomTrack:
     unknown = [c for c in head if c not in allowed]
     if unknown:
         raise ValueError(f"{path}: unknown column(s) {unknown}; allowed: {sorted(allowed)}")
-    try:
-        data = np.array([[float(x) for x in r] for r in rows[1:] if r], dtype=np.float64).reshape(
-            -1, len(head)
+    values = []
+    for n, r in rows[1:]:
+        if len(r) != len(head):
+            raise ValueError(f"{path}, line {n}: {len(r)} values for the {len(head)} columns {head}")
+        try:
+            values.append([float(x) for x in r])
+        except ValueError as e:
+            raise ValueError(f"{path}, line {n}: every value must be a number ({e})") from None
+    data = np.array(values, dtype=np.float64).reshape(-1, len(head))
+    lines = [n for n, _ in rows[1:]]
+    bad = np.argwhere(~np.isfinite(data))
+    if bad.size:
+        ((i, j),) = bad[:1]
+        raise ValueError(f"{path}, line {lines[i]}: {head[j]} = {data[i, j]}; every value must be finite")
+    t = data[:, head.index("t")]
+    if t.size > 1 and not np.all(np.diff(t) > 0):
+        i = int(np.argmax(~(np.diff(t) > 0))) + 1
+        raise ValueError(
+            f"{path}, line {lines[i]}: t = {t[i]} s does not increase (previous row: {t[i - 1]} s)"
         )
-    except ValueError as e:
-        raise ValueError(f"{path}: every value must be a number ({e})") from None
     col = {h: data[:, i] for i, h in enumerate(head)}
     derived = []
     for names in CSV_OPTIONAL:
