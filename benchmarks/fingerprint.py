@@ -12,9 +12,10 @@ then need re-running.  Run this before and after a change and compare the lines:
     python benchmarks/fingerprint.py --compare benchmarks/results/fingerprint.txt
 
 ``benchmarks/results/fingerprint.txt`` holds the lines of the committed code on the
-project's 2-core CPU VM (its first line names jax and the CPU; another jax or CPU
-may round differently, so compare like with like).  ``--compare FILE`` checks each line
-against FILE and exits 1 naming the ones that differ.
+project's 2-core CPU VM without AVX-512, ``fingerprint_avx512.txt`` those on one with it
+(XLA:CPU compiles for the instruction set it finds, which moves last bits; its first line
+names jax and the CPU; compare like with like: ``grep avx512f /proc/cpuinfo`` tells which).
+``--compare FILE`` checks each line against FILE and exits 1 naming the ones that differ.
 
 Each line is ``name sha256-prefix``:
 
@@ -98,13 +99,22 @@ def train_fingerprint(name: str):
     return digest((ts, m)), digest(eval_fn(ts))
 
 
+def isa() -> str:
+    """``", AVX-512"`` where XLA:CPU may use it (its results' last bits differ), else ``""``."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            return ", AVX-512" if " avx512f" in fh.read() else ""
+    except OSError:
+        return ""
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="env rollouts only")
     ap.add_argument("--train", nargs="*", default=["fast", "fast_dpg"], help="training presets to run")
     ap.add_argument("--compare", default=None, help="reference file of lines (see above)")
     args = ap.parse_args(argv)
-    want, header = {}, f"# jax {jax.__version__}, {device_description()}"
+    want, header = {}, f"# jax {jax.__version__}, {device_description()}{isa()}"
     if args.compare:
         with open(args.compare) as fh:
             lines = [line.strip() for line in fh if line.strip()]
