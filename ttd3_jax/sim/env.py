@@ -52,7 +52,8 @@ def error_cost(cfg: EnvConfig, e: jax.Array) -> jax.Array:
     return jnp.where(e * e <= 1.0, e, e * e)
 
 
-def _thrust_range(cfg: EnvConfig):
+def thrust_range(cfg: EnvConfig):
+    """``(min, max, hover)`` collective thrust of the action map (N, or the thrust units)."""
     q = cfg.quad
     hover = q.hover_thrust
     if cfg.thrust_map_mass is not None and q.thrust_units == "newton":
@@ -66,7 +67,7 @@ def action_to_control(cfg: EnvConfig, a: jax.Array) -> jax.Array:
     Default: thrust = f_min + (a0 + 1)/2 (f_max - f_min); rates affine onto
     [rate_min, rate_max].  ``hover_centered_thrust`` maps a0 = 0 to the hover thrust.
     """
-    lo, hi, hover = _thrust_range(cfg)
+    lo, hi, hover = thrust_range(cfg)
     a0 = a[..., 0]
     if cfg.hover_centered_thrust:
         f = jnp.where(a0 >= 0, hover + a0 * (hi - hover), hover + a0 * (hover - lo))
@@ -79,7 +80,7 @@ def action_to_control(cfg: EnvConfig, a: jax.Array) -> jax.Array:
 
 def control_to_action(cfg: EnvConfig, u: jax.Array) -> jax.Array:
     """Inverse of :func:`action_to_control` (for controllers with physical outputs)."""
-    lo, hi, hover = _thrust_range(cfg)
+    lo, hi, hover = thrust_range(cfg)
     f = u[..., 0]
     if cfg.hover_centered_thrust:
         a0 = jnp.where(f >= hover, (f - hover) / (hi - hover), (f - hover) / (hover - lo))
@@ -93,7 +94,7 @@ def control_to_action(cfg: EnvConfig, u: jax.Array) -> jax.Array:
 def hover_action(cfg: EnvConfig) -> jax.Array:
     """Normalised action that holds hover (a0 = 0.4715 with the paper's numbers).  With
     ``thrust_map_mass`` set: the hover action of that (nominal) mass."""
-    u = jnp.array([_thrust_range(cfg)[2], 0.0, 0.0, 0.0])
+    u = jnp.array([thrust_range(cfg)[2], 0.0, 0.0, 0.0])
     return control_to_action(cfg, u)
 
 

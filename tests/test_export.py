@@ -1,0 +1,132 @@
+"""Policy export: the ONNX model and the C header compute the JAX actor (normalisation
+included), a closed loop flown by the ONNX model reproduces the run's eval.json, and bad
+input is refused before anything loads."""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import shutil
+import subprocess
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from tiny import tiny
+
+from ttd3_jax import policy_export as pe
+from ttd3_jax import runs
+from ttd3_jax import spec as sp
+from ttd3_jax.control import closed_loop as cl
+from ttd3_jax.export import main as export_main
+from ttd3_jax.runner import run
+from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.td3.trainer import act
+
+ort = pytest.importorskip("onnxruntime")
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    root = tmp_path_factory.mktemp("export")
+    run_dir = run(tiny(), out=str(root / "runs"), verbose=False)["run_dir"]
+    assert export_main([run_dir, "--out", str(root / "policy")]) == 0
+    return run_dir, str(root / "policy")
+
+
+def jax_policy(run_dir):
+    """The run's loaded policies and the first seed's actor as a jitted raw-obs function."""
+    loaded = runs.load_run(run_dir)
+    setup = sp.trainer_for(loaded.spec).setup
+    actor, stats = loaded.thetas[0][1]
+    return loaded, jax.jit(lambda obs: act(setup, actor, stats, obs))
+
+
+def random_obs(n=256, size=17):
+    return np.random.default_rng(0).normal(0.0, 2.0, (n, size)).astype(np.float32)
+
+
+def test_onnx_reproduces_the_jax_actor(exported):
+    run_dir, out = exported
+    _, policy = jax_policy(run_dir)
+    obs = random_obs()
+    sess = ort.InferenceSession(os.path.join(out, "policy.onnx"), providers=["CPUExecutionProvider"])
+    got = sess.run(["action"], {"obs": obs})[0]
+    want = np.asarray(policy(jnp.asarray(obs)))
+    assert got.shape == (256, 4) and np.all(np.abs(got) <= 1 + 1e-6)  # onnxruntime tanh: within an ulp
+    np.testing.assert_allclose(got, want, atol=1e-5, rtol=0)
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+def test_the_c_header_compiles_and_reproduces_the_jax_actor(exported, tmp_path):
+    run_dir, out = exported
+    _, policy = jax_policy(run_dir)
+    src = tmp_path / "shim.c"
+    src.write_text('#include "policy.h"\nvoid shim(const float *o, float *a) { policy_forward(o, a); }\n')
+    lib = tmp_path / "libpolicy.so"
+    cmd = ["cc", "-std=c99", "-O2", "-Wall", "-Werror", "-shared", "-fPIC", "-I", out, str(src)]
+    subprocess.run([*cmd, "-o", str(lib), "-lm"], check=True)
+    shim = ctypes.CDLL(str(lib)).shim
+    obs = random_obs()
+    got = np.zeros((len(obs), 4), np.float32)
+    for o, a in zip(obs, got, strict=True):
+        shim(o.ctypes.data_as(ctypes.c_void_p), a.ctypes.data_as(ctypes.c_void_p))
+    np.testing.assert_allclose(got, np.asarray(policy(jnp.asarray(obs))), atol=1e-5, rtol=0)
+
+
+def test_a_closed_loop_flown_by_the_onnx_model_reproduces_eval_json(exported):
+    run_dir, out = exported
+    loaded, _ = jax_policy(run_dir)
+    sess = ort.InferenceSession(os.path.join(out, "policy.onnx"), providers=["CPUExecutionProvider"])
+
+    def onnx_policy(obs):
+        def host(o):
+            o = np.asarray(o, np.float32)
+            return sess.run(["action"], {"obs": o.reshape(-1, o.shape[-1])})[0].reshape(o.shape[:-1] + (4,))
+
+        shape = jax.ShapeDtypeStruct(obs.shape[:-1] + (4,), jnp.float32)
+        return jax.pure_callback(host, shape, obs, vmap_method="broadcast_all")
+
+    controller = cl.policy_controller(onnx_policy)
+    m = jax.jit(lambda: cl.test_and_validation_metrics(loaded.env_config, controller))()
+    want = json.load(open(os.path.join(run_dir, "eval.json")))["final_eval"][0]
+    for k in ("spiral_tracking_error", "los_tracking_error"):
+        assert float(m[k]) == pytest.approx(want[k], rel=1e-4), k
+
+
+def test_the_sidecar_says_what_the_policy_reads_and_writes(exported):
+    run_dir, out = exported
+    meta = json.load(open(os.path.join(out, "policy.json")))
+    cfg = runs.load_spec(run_dir).task
+    assert len(meta["observation"]) == meta["obs_size"] == TrackingEnv(cfg).observation_size == 17
+    assert meta["control_hz"] == pytest.approx(1 / cfg.control_dt)
+    assert meta["vehicle"]["mass"] == cfg.quad.mass
+    assert meta["source"]["run"] == os.path.basename(run_dir) and meta["source"]["epoch"] == 2
+    thrust = meta["action_map"]["thrust_N"]
+    assert thrust["min"] < thrust["hover"] < thrust["max"]
+
+
+def test_bad_input_is_refused_before_loading(exported, tmp_path, capsys):
+    run_dir, out = exported
+    with pytest.raises(SystemExit):
+        export_main([run_dir, "--out", out])  # files there, no --force
+    assert "already holds" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        export_main([run_dir, "--out", str(tmp_path / "x"), "--best", "--epoch", "1"])
+    assert "exclude each other" in capsys.readouterr().err
+    assert export_main([str(tmp_path), "--out", str(tmp_path / "y")]) == 2
+    assert "not a ttd3_jax run directory" in capsys.readouterr().err
+    assert export_main([run_dir, "--out", str(tmp_path / "z"), "--seed-index", "3"]) == 2
+    assert "the run has seeds 0..0" in capsys.readouterr().err
+
+
+def test_numpy_forward_matches_the_onnx_graph_without_normalisation():
+    rng = np.random.default_rng(1)
+    layers = [(rng.normal(size=(n, m)).astype(np.float32), rng.normal(size=m).astype(np.float32))
+              for n, m in ((17, 8), (8, 4))]  # fmt: skip
+    p = pe.Policy(layers, np.zeros(17, np.float32), np.ones(17, np.float32))
+    sess = ort.InferenceSession(pe.onnx_model(p).SerializeToString(), providers=["CPUExecutionProvider"])
+    obs = random_obs(32)
+    np.testing.assert_allclose(sess.run(["action"], {"obs": obs})[0], pe.forward(p, obs), atol=1e-5)

@@ -1,0 +1,185 @@
+"""A trained policy out of JAX: an ONNX model, a dependency-free C header and a JSON sidecar.
+
+All three compute the deterministic actor on the raw observation exactly as
+:class:`~ttd3_jax.sim.env.TrackingEnv` emits it, the run's observation normalisation
+included: ``a = tanh(W_L relu(... relu(W_1 clip((obs - mean) / std, ±10) + b_1) ...) + b_L)``,
+an action in [-1, 1]^4 that ``policy.json``'s ``action_map`` turns into thrust and body rates.
+The ONNX model needs the ``onnx`` package (``pip install -e ".[export]"``); the C header needs
+nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from importlib import metadata
+from typing import NamedTuple
+
+import numpy as np
+
+from ttd3_jax import runs
+from ttd3_jax.sim.config import EnvConfig
+from ttd3_jax.sim.env import thrust_range
+from ttd3_jax.td3 import normalize as nrm
+
+ONNX_OPSET = 17
+FILES = ("policy.onnx", "policy.h", "policy.json")
+
+
+class Policy(NamedTuple):
+    """The actor as plain float32 arrays: ``layers`` [(W (n_in, n_out), b (n_out,))], the
+    last one tanh-squashed, the others ReLU; ``mean`` / ``std`` (n_obs,) normalise the input
+    (identity when the run does not normalise)."""
+
+    layers: list
+    mean: np.ndarray
+    std: np.ndarray
+
+
+def from_params(actor, stats: nrm.ObsStats | None, obs_size: int) -> Policy:
+    """A :class:`Policy` from flax actor params and the run's observation statistics."""
+    dense = actor["params"]
+    names = sorted(dense, key=lambda n: int(n.rsplit("_", 1)[1]))  # Dense_0, Dense_1, ...
+    layers = [(np.asarray(dense[n]["kernel"], np.float32), np.asarray(dense[n]["bias"], np.float32))
+              for n in names]  # fmt: skip
+    if stats is None:
+        mean, std = np.zeros(obs_size, np.float32), np.ones(obs_size, np.float32)
+    else:
+        mean, std = np.asarray(stats.mean, np.float32), np.asarray(nrm.std(stats), np.float32)
+    return Policy(layers, mean, std)
+
+
+def forward(p: Policy, obs: np.ndarray) -> np.ndarray:
+    """The policy in numpy float32: obs (..., n_obs) -> action (..., n_act)."""
+    x = np.clip((np.asarray(obs, np.float32) - p.mean) / p.std, -nrm.CLIP, nrm.CLIP)
+    for i, (w, b) in enumerate(p.layers):
+        x = x @ w + b
+        x = np.tanh(x) if i == len(p.layers) - 1 else np.maximum(x, 0)
+    return x
+
+
+def onnx_model(p: Policy, name: str = "ttd3_policy"):
+    """The policy as an ``onnx.ModelProto``: input ``obs`` [batch, n_obs] float32, output
+    ``action`` [batch, n_act] float32."""
+    try:
+        import onnx
+        from onnx import TensorProto, helper, numpy_helper
+    except ImportError:
+        raise ImportError('writing policy.onnx needs the onnx package: pip install -e ".[export]"') from None
+    n_obs, n_act = p.layers[0][0].shape[0], p.layers[-1][0].shape[1]
+    init = [numpy_helper.from_array(p.mean, "obs_mean"), numpy_helper.from_array(p.std, "obs_std"),
+            numpy_helper.from_array(np.float32(-nrm.CLIP), "clip_lo"),
+            numpy_helper.from_array(np.float32(nrm.CLIP), "clip_hi")]  # fmt: skip
+    nodes = [helper.make_node("Sub", ["obs", "obs_mean"], ["centred"]),
+             helper.make_node("Div", ["centred", "obs_std"], ["scaled"]),
+             helper.make_node("Clip", ["scaled", "clip_lo", "clip_hi"], ["h0"])]  # fmt: skip
+    for i, (w, b) in enumerate(p.layers):
+        init += [numpy_helper.from_array(w, f"W{i}"), numpy_helper.from_array(b, f"b{i}")]
+        last = i == len(p.layers) - 1
+        nodes += [helper.make_node("MatMul", [f"h{i}", f"W{i}"], [f"m{i}"]),
+                  helper.make_node("Add", [f"m{i}", f"b{i}"], [f"z{i}"]),
+                  helper.make_node("Tanh" if last else "Relu", [f"z{i}"],
+                                   ["action" if last else f"h{i + 1}"])]  # fmt: skip
+    graph = helper.make_graph(
+        nodes, name, [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["batch", n_obs])],
+        [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", n_act])], init,
+    )  # fmt: skip
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", ONNX_OPSET)],
+                              producer_name="ttd3_jax")  # fmt: skip
+    model.ir_version = min(model.ir_version, 8)  # readable by onnxruntime releases since 1.11
+    onnx.checker.check_model(model)
+    return model
+
+
+def _c_array(name: str, x: np.ndarray) -> str:
+    values = ", ".join(f"{v:.9g}f" for v in np.asarray(x, np.float32).ravel())
+    return f"static const float {name}[{x.size}] = {{{values}}};"
+
+
+def c_header(p: Policy, note: str = "") -> str:
+    """C99 source of ``void ttd3_policy_forward(const float *obs, float *action)`` (also
+    reachable as ``policy_forward`` unless ``TTD3_NO_SHORT_NAMES`` is defined). Every other
+    symbol starts with ``ttd3_``; the weights are ``static const float`` arrays, row-major
+    (n_in, n_out), so the header can go into firmware with no library."""
+    n_obs, n_act = p.layers[0][0].shape[0], p.layers[-1][0].shape[1]
+    widest = max(w.shape[1] for w, _ in p.layers)
+    clip = f"{nrm.CLIP:.1f}"
+    out = ["/* ttd3_jax policy: generated by python -m ttd3_jax.export; do not edit. */",
+           *([f"/* {note} */"] if note else []), "#ifndef TTD3_POLICY_H", "#define TTD3_POLICY_H",
+           "#include <math.h>", "", f"#define TTD3_OBS_SIZE {n_obs}", f"#define TTD3_ACTION_SIZE {n_act}",
+           "", _c_array("ttd3_obs_mean", p.mean), _c_array("ttd3_obs_std", p.std)]  # fmt: skip
+    for i, (w, b) in enumerate(p.layers):
+        out += [_c_array(f"ttd3_w{i}", w), _c_array(f"ttd3_b{i}", b)]
+    out += ["", "/* action[TTD3_ACTION_SIZE] in [-1, 1] from the raw observation obs[TTD3_OBS_SIZE] */",
+            "static void ttd3_policy_forward(const float *obs, float *action) {",
+            f"  float x[{widest if widest > n_obs else n_obs}], y[{widest}];", "  int i, j;",
+            f"  for (i = 0; i < {n_obs}; ++i) {{",
+            "    float v = (obs[i] - ttd3_obs_mean[i]) / ttd3_obs_std[i];",
+            f"    x[i] = v < -{clip}f ? -{clip}f : (v > {clip}f ? {clip}f : v);", "  }"]  # fmt: skip
+    for i, (w, _) in enumerate(p.layers):
+        n_in, n_out = w.shape
+        last = i == len(p.layers) - 1
+        act = "tanhf(s)" if last else "(s > 0.0f ? s : 0.0f)"
+        dst = "action" if last else "y"
+        out += [f"  for (j = 0; j < {n_out}; ++j) {{", f"    float s = ttd3_b{i}[j];",
+                f"    for (i = 0; i < {n_in}; ++i) s += x[i] * ttd3_w{i}[i * {n_out} + j];",
+                f"    {dst}[j] = {act};", "  }"]  # fmt: skip
+        if not last:
+            out.append(f"  for (j = 0; j < {n_out}; ++j) x[j] = y[j];")
+    out += ["}", "#ifndef TTD3_NO_SHORT_NAMES", "#define policy_forward ttd3_policy_forward", "#endif",
+            "#endif /* TTD3_POLICY_H */", ""]  # fmt: skip
+    return "\n".join(out)
+
+
+def observation_layout(cfg: EnvConfig, obs_size: int) -> list[str]:
+    """Names of the observation's entries in order (``sim.env.TrackingEnv.observe``)."""
+    rel = cfg.obs_frame == "track"  # positions relative to p_d,k
+    names = [f"{'p - p_d' if rel else 'p'}.{a}" for a in "xyz"] + [f"v.{a}" for a in "xyz"]
+    names += [f"q.{a}" for a in "wxyz"]
+    names += [f"{'p_ahead - p_d' if rel else 'p_ahead'}.{a}" for a in "xyz"]
+    names += [f"p_ahead - p.{a}" for a in "xyz"] + ["|p_err - p|"]
+    names += [f"omega.{a}" for a in "xyz"][: max(0, obs_size - len(names))]
+    return names
+
+
+def action_map(cfg: EnvConfig) -> dict:
+    """How the action in [-1, 1]^4 becomes thrust (N) and body-rate commands (rad/s)."""
+    lo, hi, hover = (float(x) for x in thrust_range(cfg))
+    rule = ("a0 >= 0: hover + a0 (max - hover); a0 < 0: hover + a0 (hover - min)" if cfg.hover_centered_thrust
+            else "min + (a0 + 1) / 2 (max - min)")  # fmt: skip
+    return dict(thrust_N=dict(min=lo, max=hi, hover=hover, rule=rule),
+                body_rates_rad_s=dict(min=list(map(float, np.broadcast_to(cfg.quad.rate_min, 3))),
+                                      max=list(map(float, np.broadcast_to(cfg.quad.rate_max, 3))),
+                                      rule="a1..a3 -> min + (a + 1) / 2 (max - min)"))  # fmt: skip
+
+
+def sidecar(run_dir: str, run: runs.LoadedRun, seed: int, best: bool, obs_size: int) -> dict:
+    """``policy.json``: what the policy reads and writes, at what rate, for which vehicle."""
+    cfg = run.env_config
+    epoch = run.epoch[seed] if isinstance(run.epoch, dict) else run.epoch
+    return dict(observation=observation_layout(cfg, obs_size), obs_size=obs_size,
+                action_size=4, action_map=action_map(cfg), control_hz=1 / cfg.control_dt,
+                physics_dt_s=cfg.dt, vehicle=dataclasses.asdict(cfg.quad),
+                source=dict(run=os.path.basename(os.path.normpath(run_dir)), seed=seed, epoch=epoch,
+                            selected_on_validation=best, algo=run.spec.algo),
+                ttd3_jax_version=metadata.version("ttd3_jax"),
+                files=dict(onnx="input obs [batch, n_obs] float32 -> output action [batch, 4]",
+                           c="ttd3_policy_forward(const float *obs, float *action)"))  # fmt: skip
+
+
+def write(out: str, p: Policy, meta: dict, onnx: bool = True) -> list[str]:
+    """Write ``policy.onnx`` (if ``onnx``), ``policy.h`` and ``policy.json`` into ``out``."""
+    os.makedirs(out, exist_ok=True)
+    written = []
+    if onnx:
+        model = onnx_model(p)
+        with open(os.path.join(out, "policy.onnx"), "wb") as fh:
+            fh.write(model.SerializeToString())
+        written.append("policy.onnx")
+    src = meta["source"]
+    with open(os.path.join(out, "policy.h"), "w") as fh:
+        fh.write(c_header(p, f"run {src['run']}, seed {src['seed']}, epoch {src['epoch']}"))
+    with open(os.path.join(out, "policy.json"), "w") as fh:
+        json.dump(meta, fh, indent=2)
+    return [*written, "policy.h", "policy.json"]
