@@ -5,6 +5,7 @@ suite: the table, run times, optional robustness, JSON, plots and trace CSVs.
     python -m ttd3_jax.evaluate --controller geometric        # Spiral-RT and LOS-RT seed 0
     python -m ttd3_jax.evaluate --controller nmpc --nmpc-solve-every 10
     python -m ttd3_jax.evaluate --controller geometric --task.quad.mass 1.8   # any EnvConfig field
+    python -m ttd3_jax.evaluate --controller nmpc --vehicle crazyflie     # a named vehicle (sim.vehicles)
     python -m ttd3_jax.evaluate RUN_DIR [--epoch E | --best] [--seed-index I] [--robustness]
     python -m ttd3_jax.evaluate RUN_DIR --track my_track.csv      # header t,x,y,z[,vx,vy,vz,ax,ay,az]
     python -m ttd3_jax.evaluate --controller nmpc --suite generalization
@@ -37,6 +38,7 @@ from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import EVAL_CRASH_M, EVAL_PROTOCOL_FIELDS, PRESETS, EnvConfig, make_config
 from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.vehicles import VEHICLE_NAMES, vehicle_of, with_vehicle
 
 _NMPC_OPTIONS = (("horizon", "nmpc_horizon"), ("solve_every", "nmpc_solve_every"),
                  ("weight_scale", "nmpc_weight_scale"))  # fmt: skip
@@ -58,6 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
     add("--best", action="store_true", help="RUN_DIR's policies selected on the validation tracks (best/)")
     add("--seed-index", type=int, default=None, help="only this seed of RUN_DIR (default: all)")
     add("--preset", default=None, choices=PRESETS, help="env preset of --controller (default paper)")
+    add("--vehicle", default=None, choices=VEHICLE_NAMES, help="vehicle of --controller's env (default "
+        "paper; --task.quad.* on top); with RUN_DIR only the run's own vehicle is accepted")  # fmt: skip
     add(
         "--track",
         default="all",
@@ -113,6 +117,7 @@ def check_args(ap: argparse.ArgumentParser, args) -> dict:
                 ap.error(f"{flag} does not apply to RUN_DIR (the run's policy and env config are used)")
         if args.best and args.epoch is not None:
             ap.error("--best and --epoch exclude each other")
+        check_run_vehicle(ap, args)
         return options
     for flag, value in (
         ("--epoch", args.epoch),
@@ -122,7 +127,7 @@ def check_args(ap: argparse.ArgumentParser, args) -> dict:
         if value is not None:
             ap.error(f"{flag} needs RUN_DIR")
     try:
-        args.env_config = classical_env(args.preset, args.task_args)
+        args.env_config = classical_env(args.preset, args.task_args, args.vehicle)
         NMPCConfig(**options)
     except (TypeError, ValueError) as e:
         ap.error(str(e))
@@ -134,10 +139,25 @@ class _Task:
     task: EnvConfig
 
 
-def classical_env(preset: str, task_args: list[str]) -> EnvConfig:
-    """The env config a classical controller is evaluated (and modelled) with: ``preset``
-    and the ``--task.*`` flags (parsed by tyro, which exits 2 on a bad value)."""
+def check_run_vehicle(ap: argparse.ArgumentParser, args) -> None:
+    """``--vehicle`` with RUN_DIR: accepted only when it names the run's own vehicle."""
+    if args.vehicle is None:
+        return
+    try:
+        own = vehicle_of(runs.load_spec(args.run_dir).task.quad)
+    except (FileNotFoundError, ValueError) as e:
+        ap.error(str(e))
+    if own != args.vehicle:
+        ap.error(f"--vehicle {args.vehicle} does not match RUN_DIR's vehicle ({own or 'a custom vehicle'}), "
+                 "which its policy was trained on; remove --vehicle")  # fmt: skip
+
+
+def classical_env(preset: str, task_args: list[str], vehicle: str | None = None) -> EnvConfig:
+    """The env config a classical controller is evaluated (and modelled) with: ``preset``,
+    ``vehicle`` (``None``: the preset's) and the ``--task.*`` flags on top (parsed by tyro,
+    which exits 2 on a bad value)."""
     default = make_config(preset)
+    default = default if vehicle is None else with_vehicle(default, vehicle)
     cfg = tyro.cli(_Task, default=_Task(default), args=task_args, prog="python -m ttd3_jax.evaluate").task
     protocol = [f for f in EVAL_PROTOCOL_FIELDS if getattr(cfg, f) != getattr(default, f)]
     if protocol:
@@ -158,8 +178,10 @@ def policies(args) -> tuple:
     thetas = run.thetas if args.seed_index is None else [run.thetas[args.seed_index]]
     s = run.spec
     which = f"selected on the validation tracks, epochs {run.epoch}" if args.best else f"epoch {run.epoch}"
-    print(f"run {args.run_dir} {which} ({s.algo}, hover_centered_thrust={s.task.hover_centered_thrust})")
-    header = dict(run_dir=args.run_dir, epoch=run.epoch, algo=s.algo)
+    own = vehicle_of(s.task.quad) or "custom"
+    print(f"run {args.run_dir} {which} ({s.algo}, vehicle {own}, hover_centered_thrust="
+          f"{s.task.hover_centered_thrust})")  # fmt: skip
+    header = dict(run_dir=args.run_dir, epoch=run.epoch, algo=s.algo, vehicle=own)
     return run.env_config, run.build, {f"seed {seed}": theta for seed, theta in thetas}, header
 
 
@@ -168,10 +190,10 @@ def classical(args, options: dict) -> tuple:
     cfg = args.env_config
     build = controller_build(args.controller, cfg.for_eval("los_rt"), **options)
     opts = "".join(f" {k}={v}" for k, v in options.items())
-    print(
-        f"controller={args.controller}{opts} preset={args.preset}{''.join(' ' + a for a in args.task_args)}"
-    )
-    header = dict(controller=args.controller, options=options, preset=args.preset, task_args=args.task_args)
+    flags = "".join(" " + a for a in args.task_args)
+    print(f"controller={args.controller}{opts} preset={args.preset} vehicle={args.vehicle}{flags}")
+    header = dict(controller=args.controller, options=options, preset=args.preset, vehicle=args.vehicle,
+                  task_args=args.task_args)  # fmt: skip
     return cfg, build, {args.controller: None}, header
 
 
@@ -249,6 +271,7 @@ def main(argv=None) -> int:
     args.task_args = task_args
     if args.run_dir is None:
         args.controller, args.preset = args.controller or "geometric", args.preset or "paper"
+        args.vehicle = args.vehicle or "paper"
     options = check_args(ap, args)
     device = report.device_description()
     sequential = args.run_dir is None and args.controller == "nmpc" and options.get("solve_every", 1) > 1

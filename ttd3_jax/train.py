@@ -4,6 +4,7 @@
     python -m ttd3_jax.train --preset fast_dpg --algo td3 --num-seeds 3
     python -m ttd3_jax.train --task.e-max 1.5 --hp.lr-actor 5e-4   # any field of the run spec
     python -m ttd3_jax.train --train-tracks my_tracks/ # + your CSV tracks in the training mixture
+    python -m ttd3_jax.train --vehicle crazyflie      # a named vehicle (sim.vehicles) for the task
     python -m ttd3_jax.train --resume runs/RUN_DIR    # continue from the newest checkpoint
     python -m ttd3_jax.train --help                   # every option, its default and units
 
@@ -25,13 +26,15 @@ from ttd3_jax import spec as sp
 from ttd3_jax.cache import use_compile_cache
 from ttd3_jax.runner import TrainingDiverged, run
 from ttd3_jax.sim import custom_tracks as ct
+from ttd3_jax.sim.vehicles import VEHICLE_NAMES, with_vehicle
 
 DESCRIPTION = (
     "Train T-TD3 or TD3 (preset {preset!r}; defaults below are that preset's). Also: "
     "--preset {presets}, --out DIR (default runs), --resume RUN_DIR, "
     "--compile-cache DIR|none (XLA compilation cache; default ~/.cache/ttd3_jax/xla), "
     "--train-tracks CSV|DIR (your tracks in the training mixture, in a share "
-    "--task.train-tracks-weight of the episodes)."
+    "--task.train-tracks-weight of the episodes), --vehicle {vehicles} (the task's vehicle, "
+    "default: the preset's; --task.quad.* flags apply on top)."
 )
 
 
@@ -50,6 +53,18 @@ def track_files(path: str) -> tuple[str, ...]:
     return tuple(os.path.abspath(f) for f in files)
 
 
+def preset_with_vehicle(name: str, vehicle: str | None) -> sp.RunSpec:
+    """Run-spec preset ``name`` whose task flies ``vehicle`` (``None``: the preset's own)."""
+    default = sp.preset(name)
+    if vehicle is None:
+        return default
+    if vehicle not in VEHICLE_NAMES:
+        raise ValueError(f"--vehicle must be one of {VEHICLE_NAMES}, got {vehicle!r}")
+    if not default.is_quadrotor:
+        raise ValueError(f"--vehicle sets the quadrotor env's vehicle; env {default.env!r} has none")
+    return dataclasses.replace(default, task=with_vehicle(default.task, vehicle))
+
+
 def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
     """The launcher's own flags and the run spec (``None`` with ``--resume``).  Bad input
     raises ``ValueError`` (or exits 2 through tyro, which prints its own message)."""
@@ -59,9 +74,10 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
     pre.add_argument("--resume", default=None)
     pre.add_argument("--compile-cache", default=None)
     pre.add_argument("--train-tracks", default=None)
+    pre.add_argument("--vehicle", default=None)
     known, rest = pre.parse_known_args(argv)
     if known.resume is not None:
-        given = [k for k in ("preset", "out", "train_tracks") if getattr(known, k) is not None]
+        given = [k for k in ("preset", "out", "train_tracks", "vehicle") if getattr(known, k) is not None]
         extra = [f"--{k.replace('_', '-')}" for k in given] + rest
         if extra:
             raise ValueError(f"--resume continues the saved run spec; remove {' '.join(extra)}")
@@ -69,12 +85,14 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
     name = known.preset or "fast"
     if name not in sp.PRESETS:
         raise ValueError(f"--preset must be one of {sp.PRESETS}, got {name!r}")
-    default = sp.preset(name)
+    default = preset_with_vehicle(name, known.vehicle)
     spec = tyro.cli(
         sp.RunSpec,
         default=default,
         args=rest,
-        description=DESCRIPTION.format(preset=name, presets="|".join(sp.PRESETS)),
+        description=DESCRIPTION.format(
+            preset=name, presets="|".join(sp.PRESETS), vehicles="|".join(VEHICLE_NAMES)
+        ),
     )
     if not spec.is_quadrotor and spec.task != default.task:
         changed = [f.name for f in dataclasses.fields(spec.task) if getattr(spec.task, f.name) !=
