@@ -198,7 +198,9 @@ def build_ours(env: str, hidden: int, steps: int, num_envs: int = 1, utd: int = 
         hp = Hyper(tau=0.005, sigma=0.1, target_sigma=0.2, target_clip=0.5)
         t0 = time.perf_counter()
         if env == "pendulum":  # in place of a Brax env (never evaluated here)
-            spec = envs.EnvSpec(pendulum_v1(), 3, 1, 200, evaluate=lambda policy: {}, differentiable=False)
+            spec = envs.EnvSpec(
+                pendulum_v1(), 3, 1, 200, evaluate=lambda policy: {}, differentiable=False, actor_obs_size=3
+            )
         else:  # the paper preset's env
             spec = envs.quadrotor(make_config("paper"))
         tr = make_trainer(c, spec)

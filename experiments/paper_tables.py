@@ -1,13 +1,15 @@
 """Reproduce the paper's quadrotor Tables 3-5 (tracking error, energy, run time) and
 Figures 4-6 (3-D overlays, error and action traces) in one command.
 
-Rows: T-TD3 and TD3 (trained policies), our NMPC baseline (spec §2.6; the paper's "MPC"
-is unspecified) and the geometric controller.  Columns: Spiral-RT, LOS-RT seed 0 (the
-paper's instance) and the mean ± std over LOS-RT seeds 1..N (default 20).  The paper's
-numbers are printed beside ours.
+Rows, each labelled with its actor update and preset: T-TD3 and TD3 with the paper's actor
+update (∂Q₁/∂a through the critic; preset ``MODEL_FREE``), T-TD3 with the model-based actor
+of ``fast`` (not in the paper), our NMPC baseline (spec §2.6; the paper's "MPC" is
+unspecified) and the geometric controller.  Columns: Spiral-RT, LOS-RT seed 0 (the paper's
+instance) and the mean ± std over LOS-RT seeds 1..N (default 20).  The paper's numbers are
+printed beside the rows of the same algorithm.
 
-    python experiments/paper_tables.py --ttd3-run RUN_DIR --td3-run RUN_DIR   # evaluate given runs
-    python experiments/paper_tables.py            # trains both with `--preset fast` first
+    python experiments/paper_tables.py            # trains the three learned rows first
+    python experiments/paper_tables.py --dpg-ttd3-run DIR --dpg-td3-run DIR --fast-run DIR
     python experiments/paper_tables.py --quick    # CI: a few CPU minutes, tiny budget, temp dir
 
 Learned rows are evaluated on their run's own env config (the observation layout they
@@ -45,17 +47,22 @@ from ttd3_jax.sim.config import PRESETS, EnvConfig, make_config
 from ttd3_jax.sim.env import TrackingEnv
 
 TRACKS = tr.TEST_TRACKS  # spiral_rt, los_rt
-ROWS = ("T-TD3", "TD3", "NMPC", "geometric")
-ALGO_OF = {"T-TD3": "ttd3", "TD3": "td3"}
+MODEL_FREE = "fast_dpg"  # the best model-free preset (docs/results.md, experiments/model_free.py)
+DPG_TTD3, DPG_TD3 = f"T-TD3 (∂Q/∂a, {MODEL_FREE})", f"TD3 (∂Q/∂a, {MODEL_FREE})"
+FAST_TTD3 = "T-TD3 (model-based actor, fast)"
+# learned row: (algo, preset, the --flag that passes a trained run)
+LEARNED = {DPG_TTD3: ("ttd3", MODEL_FREE, "dpg_ttd3_run"), DPG_TD3: ("td3", MODEL_FREE, "dpg_td3_run"),
+           FAST_TTD3: ("ttd3", "fast", "fast_run")}  # fmt: skip
+ROWS = (*LEARNED, "NMPC", "geometric")
 # --quick: a CPU-minutes training budget (the learned rows are then only a smoke test)
 QUICK_TRAIN = dict(total_transitions=20_000, warmup_transitions=4_000, buffer_size=20_000, epochs=2,
                    hidden=(32, 32))  # fmt: skip
 PAPER_BOUND = 2.0  # max ‖a‖ for a ∈ [-1, 1]^4
 
 
-def train_command(algo: str, overrides: dict, out: str) -> str:
-    """The ``python -m ttd3_jax.train`` command equivalent to ``spec.preset('fast', **overrides)``."""
-    parts = ["python -m ttd3_jax.train --preset fast", f"--algo {algo}"]
+def train_command(algo: str, preset: str, overrides: dict, out: str) -> str:
+    """The ``python -m ttd3_jax.train`` command equivalent to ``spec.preset(preset, **overrides)``."""
+    parts = [f"python -m ttd3_jax.train --preset {preset}", f"--algo {algo}"]
     for k, v in overrides.items():
         flag = "--" + k.replace("_", "-")
         parts.append(f"{flag} {' '.join(map(str, v))}" if isinstance(v, tuple) else f"{flag} {v}")
@@ -63,8 +70,8 @@ def train_command(algo: str, overrides: dict, out: str) -> str:
     return " ".join(parts)
 
 
-def train(algo: str, overrides: dict, runs_dir: str) -> tuple[str, float]:
-    spec = sp.preset("fast", algo=algo, **overrides)
+def train(algo: str, preset: str, overrides: dict, runs_dir: str) -> tuple[str, float]:
+    spec = sp.preset(preset, algo=algo, **overrides)
     t0 = time.perf_counter()
     summary = runner.run(spec, out=runs_dir, verbose=True)
     return summary["run_dir"], time.perf_counter() - t0
@@ -129,7 +136,7 @@ def num(x, fmt: str) -> str:
 
 
 def paper_value(row: str, track: str, key: str):
-    name = {"T-TD3": "T-TD3", "NMPC": "MPC"}.get(row)
+    name = {DPG_TTD3: "T-TD3", "NMPC": "MPC"}.get(row)
     return PAPER[name][track][key] if name else None
 
 
@@ -160,7 +167,7 @@ def tables_markdown(res: dict, n_seeds: int, repeats: int = 3) -> list[str]:
         "### Table 4: energy Σ‖a‖ (applied normalised action, summed over 3000 steps)",
         "",
         "Σ‖a‖ in the paper's action map (thrust (a0+1)/2·20 N; hover is a0 = 0.4715). The learned "
-        "policies act through the hover-centred map of `--preset fast` (hover is a0 = 0); their "
+        "policies act through the hover-centred map of the `fast` presets (hover is a0 = 0); their "
         "own-map Σ‖a‖ is in the last column.",
         "",
         f"| controller | Spiral-RT | paper | LOS-RT seed 0 | paper | {seeds} | own map: Spiral / LOS 0 |",
@@ -182,7 +189,7 @@ def tables_markdown(res: dict, n_seeds: int, repeats: int = 3) -> list[str]:
         "Python loop: one call of a jitted (controller + env step) function per controller output, "
         f"waiting for each action (as the paper timed it), mean of {repeats} run(s) after compilation. "
         "Scan: the same episode as one compiled `lax.scan`. Latency: the jitted controller alone, "
-        "mean per call. A policy whose env repeats each action (10 ms with `--preset fast`) makes "
+        "mean per call. A policy whose env repeats each action (10 ms in the `fast` presets) makes "
         "fewer outputs per episode; its loop is also timed at 1 kHz (3000 outputs, the paper's count).",
         "",
         "| controller | track | outputs | Python loop | loop, 3000 outputs | paper | scan | "
@@ -201,34 +208,46 @@ def tables_markdown(res: dict, n_seeds: int, repeats: int = 3) -> list[str]:
 
 
 def agreement(res: dict, n_seeds: int, learned_info: dict, quick: bool) -> list[str]:
-    """Plain statements of where we agree with the paper and where we do not."""
+    """Plain statements of where we agree with the paper and where we do not, following the
+    rows: the paper's algorithm (T-TD3 with ∂Q/∂a) first, then what the model-based actor adds."""
     L = []
     g = lambda row, track, key="tracking_error": res[row]["tracks"][track][key]  # noqa: E731
     pt = PAPER["T-TD3"]
     pm_ = PAPER["MPC"]
-    for row in ("T-TD3", "TD3"):
+    for row in LEARNED:
         sp, los = g(row, "spiral_rt"), g(row, "los_rt")
         beats = sp <= PAPER_TTD3["spiral_tracking_error"] and los <= PAPER_TTD3["los_tracking_error"]
         verdict = "matches or beats" if beats else "does **not** reach"
         L.append(
-            f"- **{row} tracking:** Σ‖e‖ = {sp:.2f} (Spiral-RT) and {los:.2f} (LOS-RT seed 0) against the "
-            f"paper's T-TD3 {pt['spiral_rt']['tracking_error']} / {pt['los_rt']['tracking_error']}: our "
-            f"policy {verdict} the paper's numbers ({learned_info[row]})."
+            f"- **{row}:** Σ‖e‖ = {sp:.2f} (Spiral-RT) and {los:.2f} (LOS-RT seed 0) against the "
+            f"paper's T-TD3 {pt['spiral_rt']['tracking_error']} / {pt['los_rt']['tracking_error']}: it "
+            f"{verdict} the paper's numbers ({learned_info[row]})."
         )
-    for row in ("T-TD3", "TD3"):
+    d_t, d_0 = (g(DPG_TTD3, t) for t in TRACKS), (g(DPG_TD3, t) for t in TRACKS)
+    ahead = [t for t, a, b in zip(TRACKS, d_t, d_0, strict=True) if a < b]
+    L.append(
+        f"- **T-TD3 vs TD3 with the paper's actor update (one seed each):** T-TD3 is ahead on "
+        f"{', '.join(ahead) if ahead else 'neither track'}; 3-seed figures are in docs/results.md "
+        "(`experiments/model_free.py`)."
+    )
+    for row in LEARNED:
         for ref in ("NMPC", "geometric"):
             worse = [t for t in TRACKS if g(row, t) > g(ref, t)]
             if worse:
                 L.append(f"- {row} is worse than our {ref} on {', '.join(worse)}.")
-    ratio = [g("T-TD3", t) / g("NMPC", t) for t in TRACKS]
     p_ratio = [pt[t]["tracking_error"] / pm_[t]["tracking_error"] for t in TRACKS]
-    holds = "holds" if max(ratio) < 1 else "does not hold"
     n_sp, n_los = g("NMPC", "spiral_rt"), g("NMPC", "los_rt")
     stronger = n_sp < pm_["spiral_rt"]["tracking_error"] and n_los < pm_["los_rt"]["tracking_error"]
+    for row in (DPG_TTD3, FAST_TTD3):
+        ratio = [g(row, t) / g("NMPC", t) for t in TRACKS]
+        holds = "holds" if max(ratio) < 1 else "does not hold"
+        L.append(
+            f"- **{row} / NMPC error ratio:** {ratio[0]:.3f} (Spiral-RT) and {ratio[1]:.3f} (LOS-RT), the "
+            f"paper's T-TD3 / MPC {p_ratio[0]:.4f} and {p_ratio[1]:.4f}: the claim that T-TD3 tracks better "
+            f"than MPC {holds} for this row."
+        )
     L.append(
-        f"- **T-TD3 / MPC error ratio:** ours {ratio[0]:.3f} (Spiral-RT) and {ratio[1]:.3f} (LOS-RT), "
-        f"the paper's {p_ratio[0]:.4f} and {p_ratio[1]:.4f}. The paper's claim that T-TD3 tracks better "
-        f"than MPC {holds} here. Our NMPC (Σ‖e‖ {n_sp:.2f} / {n_los:.2f}) is "
+        f"- Our NMPC (Σ‖e‖ {n_sp:.2f} / {n_los:.2f}) is "
         f"{'stronger' if stronger else 'not uniformly stronger'} than the paper's MPC "
         f"({pm_['spiral_rt']['tracking_error']} / {pm_['los_rt']['tracking_error']}): it has the exact "
         "model and the analytic reference as full preview (spec §2.6), so the paper's MPC numbers are "
@@ -243,15 +262,16 @@ def agreement(res: dict, n_seeds: int, learned_info: dict, quick: bool) -> list[
         + ", ".join(f"{row} {g(row, 'spiral_rt', 'energy_paper_map') / 3000:.2f}" for row in res)
         + " per step (paper's map). Compare rankings only."
     )
-    e_t = [g("T-TD3", t, "energy_paper_map") for t in TRACKS]
     e_m = [g("NMPC", t, "energy_paper_map") for t in TRACKS]
-    rank = ["lower" if a < b else "higher" for a, b in zip(e_t, e_m, strict=True)]
-    L.append(
-        f"- **Energy ranking:** the paper has T-TD3 slightly below MPC on both tracks. Ours: T-TD3 is "
-        f"{rank[0]} than NMPC on Spiral-RT ({e_t[0]:.1f} vs {e_m[0]:.1f}) and {rank[1]} on LOS-RT "
-        f"({e_t[1]:.1f} vs {e_m[1]:.1f})."
-    )
-    lt = [res["T-TD3"]["tracks"][t]["loop_3000_s"] for t in TRACKS]
+    for row in (DPG_TTD3, FAST_TTD3):
+        e_t = [g(row, t, "energy_paper_map") for t in TRACKS]
+        rank = ["lower" if a < b else "higher" for a, b in zip(e_t, e_m, strict=True)]
+        L.append(
+            f"- **Energy ranking, {row}:** the paper has T-TD3 slightly below MPC on both tracks. Ours is "
+            f"{rank[0]} than NMPC on Spiral-RT ({e_t[0]:.1f} vs {e_m[0]:.1f}) and {rank[1]} on LOS-RT "
+            f"({e_t[1]:.1f} vs {e_m[1]:.1f})."
+        )
+    lt = [res[DPG_TTD3]["tracks"][t]["loop_3000_s"] for t in TRACKS]
     lm = [res["NMPC"]["tracks"][t]["loop_3000_s"] for t in TRACKS]
     p_rt = [pm_[t]["run_s"] / pt[t]["run_s"] for t in TRACKS]
     L.append(
@@ -317,8 +337,9 @@ def write_csv(path: str, res: dict, n_seeds: int) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--ttd3-run", default=None, help="T-TD3 run directory (default: train one)")
-    ap.add_argument("--td3-run", default=None, help="TD3 run directory (default: train one)")
+    for row, (algo, preset, flag) in LEARNED.items():
+        what = f"run directory of the row {row!r} (--preset {preset} --algo {algo}; default: train one)"
+        ap.add_argument("--" + flag.replace("_", "-"), default=None, help=what)
     ap.add_argument("--seed-index", type=int, default=0, help="seed of the runs to tabulate (default 0)")
     ap.add_argument("--out", default=None, help="output directory (default results; --quick: a temp dir)")
     ap.add_argument("--runs-dir", default=None, help="where to train missing runs (default OUT/runs)")
@@ -342,19 +363,19 @@ def main(argv=None) -> int:
     print(f"device: {device}\noutput: {out}")
 
     # ---- learned policies: given run directories, or train them
-    run_dirs = {"T-TD3": args.ttd3_run, "TD3": args.td3_run}
+    run_dirs = {row: getattr(args, flag) for row, (_, _, flag) in LEARNED.items()}
     learned_info, training = {}, {}
-    for row, algo in ALGO_OF.items():
+    for row, (algo, preset, _) in LEARNED.items():
         if run_dirs[row] is None:
-            cmd = train_command(algo, overrides, runs_dir)
+            cmd = train_command(algo, preset, overrides, runs_dir)
             print(f"training {row}: {cmd}")
-            run_dirs[row], train_s = train(algo, overrides, runs_dir)
+            run_dirs[row], train_s = train(algo, preset, overrides, runs_dir)
             training[row] = {"command": cmd, "run_dir": run_dirs[row], "wall_s": train_s}
         else:
             training[row] = {"command": None, "run_dir": run_dirs[row], "wall_s": None}
 
     res, traces = {}, {}
-    for row in ("T-TD3", "TD3"):
+    for row in LEARNED:
         run = load_run(run_dirs[row], None)
         s, c = run.spec, run.spec.train
         if not 0 <= args.seed_index < len(run.thetas):
@@ -362,8 +383,10 @@ def main(argv=None) -> int:
                 f"--seed-index {args.seed_index} out of range for {run_dirs[row]} ({len(run.thetas)} seeds)"
             )
         seed, theta = run.thetas[args.seed_index]
+        update = f"model-based actor (H = {c.model_horizon})" if c.model_horizon else "∂Q/∂a actor"
         budget = (
-            f"{c.algo}, preset env {env_preset_of(s.task)}, {c.total_transitions:,} transitions, "
+            f"{c.algo}, {update}, "
+            f"preset env {env_preset_of(s.task)}, {c.total_transitions:,} transitions, "
             f"{c.epochs} epochs, "
             f"hidden {c.hidden}, {c.num_envs} envs × {c.updates_per_step} updates/step, seed {seed}, "
             f"checkpoint epoch {run.epoch}"
@@ -414,7 +437,7 @@ def main(argv=None) -> int:
         "## Learned policies",
         "",
     ]
-    for row in ("T-TD3", "TD3"):
+    for row in LEARNED:
         t = training[row]
         how = (
             f"trained here with `{t['command']}` ({t['wall_s'] / 60:.1f} min)"

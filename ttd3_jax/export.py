@@ -69,6 +69,11 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
+    cfg = run.env_config
+    if cfg.obs_memory or cfg.obs_privileged:
+        print(f"error: {run_dir} observes obs_memory={cfg.obs_memory}, obs_privileged={cfg.obs_privileged}; "
+              "export supports the stateless observation only (both false)", file=sys.stderr)  # fmt: skip
+        return 2
     seed, (actor, stats) = run.thetas[args.seed_index]
     obs_size = TrackingEnv(run.env_config).observation_size
     policy = pe.from_params(actor, stats, obs_size)

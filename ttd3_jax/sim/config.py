@@ -14,9 +14,10 @@ from ttd3_jax.sim.dynamics import QuadParams, validate_params
 
 TRACK_MODES = ("train", "validation", "spiral_rt", "los_rt")
 ERR_REFS = ("current", "next")
-ERR_COSTS = ("paper", "squared")
+ERR_COSTS = ("paper", "squared", "log")
 OBS_FRAMES = ("world", "track")
 PRESETS = ("paper", "practical")
+PRIVILEGED_AHEAD_S = (0.5, 1.0)  # s after p_d,k+L of the critics' extra reference points (obs_privileged)
 CRASH_GAMMA = 0.99  # the discount the derived crash penalty is sized for (spec R4)
 # the fields EnvConfig.for_eval sets, and the episode length it keeps (keep them together)
 EVAL_PROTOCOL_FIELDS = ("track", "los_seed", "randomize_init", "terminate", "wind_sigma", "e_max",
@@ -42,8 +43,16 @@ class EnvConfig:
     lookahead_k: int = 1  # physics steps ahead for the observed reference point
     obs_frame: str = "world"  # "track": positions relative to p_d,k (translation invariant)
     hover_centered_thrust: bool = False  # a0 = 0 means hover thrust
+    # appended to the observation (not in the paper): the last applied action (4) and the
+    # leaky integral ∫(p_d − p) dt (3, m·s, leak time constant memory_tau s)
+    obs_memory: bool = False
+    memory_tau: float = 1.0  # s
+    # appended last, for the critics only (the actor sees the observation without them):
+    # the wind acceleration (3, m/s²) and p_d 0.5 s and 1 s after p_d,k+L, relative to it (6, m)
+    obs_privileged: bool = False
     # reward and termination (R1-R4)
-    err_cost: str = "paper"
+    err_cost: str = "paper"  # r_e: "paper" (e, or e² past 1 m), "squared", "log": ln(1 + e/err_scale)
+    err_scale: float = 0.02  # m, ε of err_cost="log"
     rho1: float = 1.0
     rho2: float = 0.01
     effort_weights: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)  # diag Ω
@@ -93,7 +102,8 @@ class EnvConfig:
     @property
     def horizon_steps(self) -> int:
         """Physics steps at which a reference point may be read."""
-        return self.episode_steps + self.lookahead_k + 2
+        extra = round(max(PRIVILEGED_AHEAD_S) / self.dt) if self.obs_privileged else 0
+        return self.episode_steps + self.lookahead_k + 2 + extra
 
     @property
     def crash_cost(self) -> float:
@@ -101,8 +111,7 @@ class EnvConfig:
         ``e_max`` would cost for ever, ρ₁ r_e(e_max) · action_repeat / (1 − 0.99)."""
         if self.crash_penalty is not None:
             return self.crash_penalty
-        e = self.e_max
-        return self.rho1 * (e if e * e <= 1 else e * e) * self.action_repeat / (1 - CRASH_GAMMA)
+        return self.rho1 * error_cost_value(self, self.e_max) * self.action_repeat / (1 - CRASH_GAMMA)
 
     def for_eval(self, track: str, los_seed: int = 0, wind_sigma: float = 0.0) -> EnvConfig:
         """The evaluation protocol (spec §2.5): fixed track, start on p_d(0) at rest and
@@ -114,6 +123,15 @@ class EnvConfig:
         return dataclasses.replace(self, track=track, los_seed=los_seed, wind_sigma=wind_sigma, **quiet)
 
 
+def error_cost_value(c: EnvConfig, e: float) -> float:
+    """r_e(e) for a Python float ``e`` (m); ``sim.env.error_cost`` is the traced one."""
+    if c.err_cost == "squared":
+        return e * e
+    if c.err_cost == "log":
+        return math.log1p(e / c.err_scale)
+    return e if e * e <= 1 else e * e
+
+
 def _number(c: EnvConfig, name: str) -> float:
     v = getattr(c, name)
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
@@ -123,7 +141,7 @@ def _number(c: EnvConfig, name: str) -> float:
 
 def _validate(c: EnvConfig) -> None:
     """Raise ``ValueError`` naming the bad field, its value and what is allowed."""
-    for name in ("dt", "e_max", "wind_tau", "rho1"):
+    for name in ("dt", "e_max", "wind_tau", "rho1", "err_scale", "memory_tau"):
         if _number(c, name) <= 0:
             raise ValueError(f"EnvConfig.{name} must be > 0, got {getattr(c, name)!r}")
     for name in ("episode_steps", "action_repeat", "rk4_substeps", "lookahead_k"):
@@ -145,9 +163,13 @@ def _validate(c: EnvConfig) -> None:
         if getattr(c, name) not in allowed:
             raise ValueError(f"EnvConfig.{name} must be one of {allowed}, got {getattr(c, name)!r}")
     for name in ("renormalize", "canonical_q_obs", "hover_centered_thrust", "effort_hover_relative",
-                 "terminate", "randomize_init"):  # fmt: skip
+                 "terminate", "randomize_init", "obs_memory", "obs_privileged"):  # fmt: skip
         if not isinstance(getattr(c, name), bool):
             raise ValueError(f"EnvConfig.{name} must be true or false, got {getattr(c, name)!r}")
+    if c.obs_memory and c.action_delay:
+        raise ValueError(
+            "EnvConfig.obs_memory needs action_delay 0 (the delayed env keeps its own last action)"
+        )
     if c.episode_steps % c.action_repeat:
         raise ValueError(
             f"EnvConfig.episode_steps ({c.episode_steps}) must be a multiple of action_repeat "

@@ -39,14 +39,16 @@ with contextlib.redirect_stdout(io.StringIO()):
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import rng
 from ttd3_jax.sim import trajectories as tr
-from ttd3_jax.sim.config import EnvConfig, make_config
+from ttd3_jax.sim.config import PRIVILEGED_AHEAD_S, EnvConfig, make_config
 from ttd3_jax.sim.dynamics import QuadState, quat_from_axis_angle, quat_mul, rk4_step
 
 _USER_TAG = 0x05E7  # folded into a reset's track key to pick users' training tracks
 
 
 def error_cost(cfg: EnvConfig, e: jax.Array) -> jax.Array:
-    """r_e(e) of eq. 3 (``err_cost="paper"``) or e² (``"squared"``); e in m."""
+    """r_e(e) of eq. 3 (``err_cost="paper"``), e² (``"squared"``) or ln(1 + e/ε) (``"log"``); e in m."""
+    if cfg.err_cost == "log":
+        return jnp.log1p(e / cfg.err_scale)
     if cfg.err_cost == "squared":
         return e * e
     return jnp.where(e * e <= 1.0, e, e * e)
@@ -118,6 +120,14 @@ class DelayedTrackingState(TrackingState):
     prev_action: jax.Array  # (4,) action the next step applies (the hover action at reset)
 
 
+@struct.dataclass
+class MemoryTrackingState(TrackingState):
+    """The state of an env with ``obs_memory`` (a subclass, like the delayed one)."""
+
+    last_action: jax.Array  # (4,) the action applied by the last step (zeros at reset)
+    err_int: jax.Array  # (3,) m·s, leaky ∫(p_d − p) dt
+
+
 class TrackingEnv(Env):
     """Quadrotor trajectory tracking; ``reset(rng) -> State``, ``step(state, a) -> State``.
 
@@ -144,7 +154,8 @@ class TrackingEnv(Env):
         self._rates_in_obs = c.quad.rate_model != "instant"
 
     # the Brax Env interface; dt is seconds per env step, num_segments the static track-table size
-    observation_size = property(lambda self: 20 if self._rates_in_obs else 17)
+    actor_observation_size = property(lambda self: 17 + 3 * self._rates_in_obs + 7 * self.config.obs_memory)
+    observation_size = property(lambda self: self.actor_observation_size + 9 * self.config.obs_privileged)
     action_size = property(lambda self: 4)
     backend = property(lambda self: "jax")
     dt = property(lambda self: self.config.control_dt)
@@ -190,6 +201,8 @@ class TrackingEnv(Env):
         fields["ref_next"] = jnp.zeros(3, f)
         if c.action_delay:
             ps = DelayedTrackingState(**fields, prev_action=hover_action(c).astype(f))
+        elif c.obs_memory:
+            ps = MemoryTrackingState(**fields, last_action=jnp.zeros(4, f), err_int=jnp.zeros(3, f))
         else:
             ps = TrackingState(**fields)
         obs, ps = self.observe(ps)
@@ -222,6 +235,10 @@ class TrackingEnv(Env):
         reward = reward - c.crash_cost * terminated
         truncated = (k >= c.episode_steps) & ~terminated
         ps = ps.replace(quad=quad, k=k, wind=wind, key=key)
+        if c.obs_memory:
+            leak = math.exp(-c.control_dt / c.memory_tau)
+            err_int = leak * ps.err_int + c.control_dt * _zero_non_finite(p_ref - quad.p)
+            ps = ps.replace(last_action=a, err_int=err_int)
         obs, ps = self.observe(ps, p_ref)
         f = reward.dtype
         a_norm2 = jnp.sum(a * a)
@@ -313,6 +330,11 @@ class TrackingEnv(Env):
             parts = [p, v, q, p_ahead, p_ahead - p, err[None]]
         if self._rates_in_obs:
             parts.append(x.w)
+        if c.obs_memory:
+            parts += [ps.last_action, ps.err_int]
+        if c.obs_privileged:
+            ahead = [ps.k + c.lookahead_k + round(t / c.dt) for t in PRIVILEGED_AHEAD_S]
+            parts += [ps.wind] + [tr.position(ps.track, k, c.dt) - p_ahead for k in ahead]
         # non-finite entries (a diverged state) read as 0, in one read of the concatenation
         return _zero_non_finite(jnp.concatenate(parts)), ps
 

@@ -10,6 +10,7 @@ import math
 
 from flax import struct
 
+from ttd3_jax.td3.networks import CRITIC_ARCHS
 from ttd3_jax.td3.noise import NoiseConfig
 
 ALGOS = ("ttd3", "td3")
@@ -76,6 +77,7 @@ class TrainConfig:
     # H·num_envs transitions for the usual TD3 critic updates.
     model_horizon: int = 0
     hidden: tuple[int, ...] = (256, 256)
+    critic_arch: str = "mlp"  # "mlp" (the paper's) | "residual" (SimBa-style LayerNorm blocks)
     normalize_obs: bool = False  # running mean/std normalisation of observations (nets' input)
     epochs: int = 50  # progress / eval / checkpoint points
     noise: NoiseConfig = NoiseConfig()
@@ -127,6 +129,8 @@ def _validate(c: TrainConfig) -> None:
     """Raise ``ValueError`` naming the bad field; runs before anything is compiled."""
     if c.algo not in ALGOS:
         raise ValueError(f"algo must be one of {ALGOS}, got {c.algo!r}")
+    if c.critic_arch not in CRITIC_ARCHS:
+        raise ValueError(f"critic_arch must be one of {CRITIC_ARCHS}, got {c.critic_arch!r}")
     if c.target_noise not in TARGET_NOISES:
         raise ValueError(f"target_noise must be one of {TARGET_NOISES}, got {c.target_noise!r}")
     for name in ("num_envs", "total_transitions", "buffer_size", "batch_size", "updates_per_step",

@@ -34,6 +34,7 @@ class EnvSpec(NamedTuple):
     episode_length: int  # transitions per nominal episode (L_nom)
     evaluate: Callable[[Callable], dict]  # policy (obs -> action) -> metrics (pure; jit it)
     differentiable: bool  # whether gradients flow through env.step (model_horizon > 0)
+    actor_obs_size: int  # the leading observation entries the actor reads (the critics read all)
 
 
 def quadrotor(cfg: EnvConfig) -> EnvSpec:
@@ -44,7 +45,8 @@ def quadrotor(cfg: EnvConfig) -> EnvSpec:
     def evaluate(policy):
         return test_and_validation_metrics(cfg, policy_controller(policy))
 
-    return EnvSpec(env, env.observation_size, env.action_size, env.episode_length, evaluate, True)
+    return EnvSpec(env, env.observation_size, env.action_size, env.episode_length, evaluate, True,
+                   env.actor_observation_size)  # fmt: skip
 
 
 class _WithTerminated:
@@ -95,4 +97,5 @@ def brax(name: str, backend: str = "mjx", episode_length: int = 1000, eval_episo
         init = (jnp.zeros((), jnp.int32), s, 0.0 * ones, ones)
         return {"eval_return": jnp.mean(jax.lax.while_loop(running, body, init)[2])}
 
-    return EnvSpec(env, env.observation_size, env.action_size, episode_length, evaluate, False)
+    return EnvSpec(env, env.observation_size, env.action_size, episode_length, evaluate, False,
+                   env.observation_size)  # fmt: skip

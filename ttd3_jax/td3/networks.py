@@ -16,27 +16,56 @@ import jax.numpy as jnp
 
 
 class MLP(nn.Module):
-    """Dense ReLU layers, then a linear output (tanh-squashed if ``squash``)."""
+    """Dense ReLU layers, then a linear output (tanh-squashed if ``squash``).  With
+    ``in_size`` it reads only the first ``in_size`` inputs (an actor that does not see the
+    critics' privileged observation)."""
 
     hidden: Sequence[int]
     out: int
     squash: bool = False
+    in_size: int | None = None
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
+        if self.in_size is not None:
+            x = x[..., : self.in_size]
         for width in self.hidden:
             x = nn.relu(nn.Dense(width)(x))
         x = nn.Dense(self.out)(x)
         return jnp.tanh(x) if self.squash else x
 
 
+class ResidualMLP(nn.Module):
+    """A critic made for resolution (SimBa, Lee et al. 2024): a Dense embedding of width
+    ``2·hidden[0]``, one pre-LayerNorm residual block (Dense 4w, ReLU, Dense w) per entry of
+    ``hidden``, a final LayerNorm and a linear output."""
+
+    hidden: Sequence[int]
+    out: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        w = 2 * self.hidden[0]
+        x = nn.Dense(w)(x)
+        for _ in self.hidden:
+            x = x + nn.Dense(w)(nn.relu(nn.Dense(4 * w)(nn.LayerNorm()(x))))
+        return nn.Dense(self.out)(nn.LayerNorm()(x))
+
+
 class Networks(NamedTuple):
     actor: MLP  # obs (..., n_obs) -> action (..., n_act) in [-1, 1]
-    critic: MLP  # [obs, action] (..., n_obs + n_act) -> Q (..., 1)
+    critic: nn.Module  # [obs, action] (..., n_obs + n_act) -> Q (..., 1): MLP or ResidualMLP
 
 
-def make_networks(action_size: int, hidden: Sequence[int] = (256, 256)) -> Networks:
-    return Networks(actor=MLP(tuple(hidden), action_size, squash=True), critic=MLP(tuple(hidden), 1))
+CRITIC_ARCHS = ("mlp", "residual")
+
+
+def make_networks(action_size: int, hidden: Sequence[int] = (256, 256), critic_arch: str = "mlp",
+                  actor_obs_size: int | None = None) -> Networks:  # fmt: skip
+    """The actor (reading the first ``actor_obs_size`` observation entries, or all) and the
+    critic architecture ``critic_arch`` (one of ``CRITIC_ARCHS``)."""
+    critic = ResidualMLP(tuple(hidden), 1) if critic_arch == "residual" else MLP(tuple(hidden), 1)
+    return Networks(actor=MLP(tuple(hidden), action_size, squash=True, in_size=actor_obs_size), critic=critic)
 
 
 def init_params(nets: Networks, key: jax.Array, obs_size: int, action_size: int):

@@ -73,7 +73,8 @@ class Finished(NamedTuple):
 
 def make_setup(c: TrainConfig, env: EnvSpec, on_progress: Callable[[int], None] | None = None) -> Setup:
     adam = optax.inject_hyperparams(optax.adam)(learning_rate=0.0)
-    return Setup(c, env, make_networks(env.action_size, c.hidden), adam, on_progress)
+    actor_in = env.actor_obs_size if env.actor_obs_size != env.obs_size else None
+    return Setup(c, env, make_networks(env.action_size, c.hidden, c.critic_arch, actor_in), adam, on_progress)
 
 
 def obs_stats(s: Setup, ts: TrainState) -> nrm.ObsStats | None:
