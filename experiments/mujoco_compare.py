@@ -188,6 +188,29 @@ def auc(steps: np.ndarray, mean: np.ndarray) -> float:
     return float(area / (steps[-1] - steps[0]))
 
 
+def paired(rows: list[dict], task: str) -> dict | None:
+    """T-TD3 minus TD3, seed by seed (seed i of both starts from the same key), on the
+    evaluations both have: final return and AUC, with the mean difference, the number of
+    seeds where T-TD3 is ahead and a two-sided paired t-test's p (nan below 2 seeds)."""
+    from scipy import stats
+
+    (st, rt), (sd, rd) = curve(rows, task, "ttd3"), curve(rows, task, "td3")
+    common = np.intersect1d(st, sd)
+    n = min(rt.shape[0], rd.shape[0]) if rt.size and rd.size else 0
+    if n == 0 or common.size == 0:
+        return None
+    rt, rd = rt[:n, np.isin(st, common)], rd[:n, np.isin(sd, common)]
+    res = {"seeds": n, "step": int(common[-1])}
+    for name, a, b in (("final", rt[:, -1], rd[:, -1]),
+                       ("auc", [auc(common, x) for x in rt], [auc(common, x) for x in rd])):  # fmt: skip
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        p = float(stats.ttest_rel(a, b).pvalue) if n >= 2 and np.any(a != b) else math.nan
+        res.update(
+            {f"{name}_diff": float(np.mean(a - b)), f"{name}_wins": int(np.sum(a > b)), f"{name}_p": p}
+        )
+    return res
+
+
 def summarize(rows: list[dict]) -> list[dict]:
     """Per task and algorithm: final return (mean, std over seeds), AUC (the mean return over
     all evaluations, i.e. the area under the curve per step) and the first step at which
@@ -278,8 +301,9 @@ def plot_curves(rows: list[dict], path: str, title: str | None = None) -> str:
     return path
 
 
-def reading(summary: list[dict]) -> list[str]:
-    """One line per task: which algorithm is ahead, beside the paper's claim."""
+def reading(summary: list[dict], rows: list[dict] | None = None) -> list[str]:
+    """One line per task: which algorithm is ahead (with ``rows``, the evaluations: a paired
+    test over seeds), beside the paper's claim."""
     lines = []
     for task in TASKS:
         s = {r["algo"]: r for r in summary if r["task"] == task}
@@ -289,9 +313,18 @@ def reading(summary: list[dict]) -> list[str]:
         pooled = math.sqrt((t["final_std"] ** 2 + d["final_std"] ** 2) / 2) or 1.0
         gap = (t["final_mean"] - d["final_mean"]) / pooled
         ahead = "T-TD3" if t["auc"] > d["auc"] else "TD3"
+        pr = paired(rows, task) if rows is not None else None
+        test = ""
+        if pr:
+            n = pr["seeds"]
+            test = (
+                f" Paired over {n} seeds: final {pr['final_diff']:+.1f} (T-TD3 ahead in "
+                f"{pr['final_wins']}/{n}, p = {pr['final_p']:.2f}), AUC {pr['auc_diff']:+.1f} "
+                f"({pr['auc_wins']}/{n}, p = {pr['auc_p']:.2f})."
+            )
         lines.append(
             f"- {task}: AUC T-TD3 {t['auc']:.1f} vs TD3 {d['auc']:.1f} ({ahead} ahead over the run); final "
-            f"{t['final_mean']:.1f} vs {d['final_mean']:.1f} ({gap:+.1f} pooled std). "
+            f"{t['final_mean']:.1f} vs {d['final_mean']:.1f} ({gap:+.1f} pooled std).{test} "
             f"Paper: {PAPER_CLAIM[task]}."
         )
     return lines
@@ -349,7 +382,7 @@ def budget_markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_readme(a: argparse.Namespace, summary: list[dict], wall_s: float) -> None:
+def write_readme(a: argparse.Namespace, summary: list[dict], wall_s: float, rows_e: list[dict]) -> None:
     """README.md of ``a.out``: each task's budget (read from its run, so invocations with
     different budgets into one folder are described correctly), the device, the last
     command, the summary and a generated reading."""
@@ -389,7 +422,7 @@ def write_readme(a: argparse.Namespace, summary: list[dict], wall_s: float) -> N
         fh.write("Curves: `curves.png` (mean ± ½ std over seeds). Every evaluation: `evals.csv`.\n\n")
         fh.write(summary_markdown(summary))
         fh.write("\nReading (generated; AUC is the mean return over all evaluations):\n\n")
-        fh.write("\n".join(reading(summary)) + "\n")
+        fh.write("\n".join(reading(summary, rows_e)) + "\n")
 
 
 def jax_device() -> str:
@@ -415,9 +448,9 @@ def report(a: argparse.Namespace, wall_s: float) -> list[dict]:
         f"{'/'.join(map(str, seeds))} seeds, {a.backend}, {jax_device()}"
     )
     plot_curves(rows, os.path.join(a.out, "curves.png"), title=title)
-    write_readme(a, summary, wall_s)
+    write_readme(a, summary, wall_s, rows)
     print(summary_markdown(summary))
-    print("\n".join(reading(summary)))
+    print("\n".join(reading(summary, rows)))
     return summary
 
 

@@ -74,6 +74,21 @@ def test_summary_statistics():
     assert math.isnan(mc.steps_to(np.array([1, 2]), np.array([0.0, 1.0]), 5.0))
 
 
+def test_paired_test_over_seeds():
+    rows = rows_for("hopper", "td3", [100.0, 200.0, 150.0]) + rows_for(
+        "hopper", "ttd3", [130.0, 190.0, 190.0]
+    )
+    pr = mc.paired(rows, "hopper")
+    # per-seed final differences +30, -10, +40: mean 20, T-TD3 ahead in 2 of 3
+    assert pr["seeds"] == 3 and pr["final_diff"] == pytest.approx(20.0) and pr["final_wins"] == 2
+    from scipy import stats
+
+    assert pr["final_p"] == pytest.approx(stats.ttest_rel([130, 190, 190], [100, 200, 150]).pvalue)
+    line = mc.reading(mc.summarize(rows), rows)[0]
+    assert "Paired over 3 seeds: final +20.0 (T-TD3 ahead in 2/3" in line
+    assert mc.paired(rows_for("hopper", "td3", [1.0]), "hopper") is None
+
+
 def fake_run(out, task, algo, argv):
     """A run directory as the runner writes it: config.json, metrics.csv, eval.json."""
     a = mc.parse(argv)
