@@ -12,7 +12,8 @@ printed beside the rows of the same algorithm.
     python experiments/paper_tables.py --dpg-ttd3-run DIR --dpg-td3-run DIR --fast-run DIR
     python experiments/paper_tables.py --quick    # CI: a few CPU minutes, tiny budget, temp dir
 
-Learned rows are evaluated on their run's own env config (the observation layout they
+Learned rows are each run's policy selected on the validation tracks (``best/``), evaluated
+on their run's own env config (the observation layout they
 were trained with); NMPC and geometric run the ``paper`` preset at 1 kHz.  Σ‖e‖ and
 energy are sums over the 3000 physics steps of 1 ms either way, so the rows compare.
 Writes ``paper_tables.md``, ``paper_tables.csv``, ``paper_tables.json`` and
@@ -47,7 +48,7 @@ from ttd3_jax.sim.config import PRESETS, EnvConfig, make_config
 from ttd3_jax.sim.env import TrackingEnv
 
 TRACKS = tr.TEST_TRACKS  # spiral_rt, los_rt
-MODEL_FREE = "fast_dpg"  # the best model-free preset (docs/results.md, experiments/model_free.py)
+MODEL_FREE = "fast_model_free"  # the best model-free preset (docs/results.md, experiments/model_free.py)
 DPG_TTD3, DPG_TD3 = f"T-TD3 (∂Q/∂a, {MODEL_FREE})", f"TD3 (∂Q/∂a, {MODEL_FREE})"
 FAST_TTD3 = "T-TD3 (model-based actor, fast)"
 # learned row: (algo, preset, the --flag that passes a trained run)
@@ -376,7 +377,7 @@ def main(argv=None) -> int:
 
     res, traces = {}, {}
     for row in LEARNED:
-        run = load_run(run_dirs[row], None)
+        run = load_run(run_dirs[row], None, best=True)  # the policy selected on the validation tracks
         s, c = run.spec, run.spec.train
         if not 0 <= args.seed_index < len(run.thetas):
             ap.error(
@@ -389,10 +390,10 @@ def main(argv=None) -> int:
             f"preset env {env_preset_of(s.task)}, {c.total_transitions:,} transitions, "
             f"{c.epochs} epochs, "
             f"hidden {c.hidden}, {c.num_envs} envs × {c.updates_per_step} updates/step, seed {seed}, "
-            f"checkpoint epoch {run.epoch}"
+            f"policy selected on the validation tracks (epoch {run.epoch[seed]})"
         )
         learned_info[row] = budget
-        training[row].update(budget=budget, seed=seed, epoch=run.epoch)
+        training[row].update(budget=budget, seed=seed, epoch=run.epoch[seed])
         print(f"evaluating {row} ({run_dirs[row]})")
         res[row] = evaluate_row(run.env_config, run.build, theta, los_seeds, args.repeats, False)
     paper_cfg = make_config("paper")

@@ -89,7 +89,7 @@ def test_actor_reads_only_its_slice_and_residual_critic_shapes():
     np.testing.assert_array_equal(nets.actor.apply(p, x), nets.actor.apply(p, x.at[:, 5:].set(7.0)))
     q = nets.critic.init(jax.random.PRNGKey(2), x)
     assert nets.critic.apply(q, x).shape == (3, 1)
-    assert q["params"]["Dense_0"]["kernel"].shape == (9, 32)  # width 2 * hidden[0]
+    assert q["params"]["Dense_0"]["kernel"].shape == (9, 16)  # width hidden[0]
 
 
 def test_one_epoch_with_every_option_trains_and_stays_finite():

@@ -18,7 +18,7 @@ from ttd3_jax.td3.config import Hyper, TrainConfig, validate_hyper
 from ttd3_jax.td3.trainer import Trainer, make_trainer
 
 QUADROTOR = "quadrotor"
-PRESETS = ("fast", "fast_dpg", "paper", "mujoco")
+PRESETS = ("fast", "fast_dpg", "fast_model_free", "paper", "mujoco")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -117,12 +117,15 @@ def preset(name: str, **changes) -> RunSpec:
     actor lr 1e-3.  The twin critics are still trained by TD3; the actor does not use them.
     ``fast_dpg``: ``fast`` with the paper's actor update (∂Q₁/∂a through the critic), 450k
     transitions, 16 updates per 64-env step; it plateaus (docs/results.md).
+    ``fast_model_free``: ``fast_dpg`` with the observation's memory (last action, error
+    integral) and the critics' privileged inputs (wind, 1 s of preview): the best model-free
+    recipe of ``experiments/model_free.py``, still short of the paper (docs/results.md).
     ``mujoco``: the MuJoCo protocol (spec §2.7) on hopper: 1 env, 1 update per step,
     τ = 0.005, c = 0.5, 1e6 steps, L_nom = 1000.
     """
     if name == "paper":
         base = RunSpec()
-    elif name in ("fast", "fast_dpg"):
+    elif name in ("fast", "fast_dpg", "fast_model_free"):
         train = TrainConfig(num_envs=64, total_transitions=450_000, warmup_transitions=10_000,
                             buffer_size=450_000, batch_size=256, updates_per_step=16, hidden=(64, 64),
                             normalize_obs=True, epochs=15)  # fmt: skip
@@ -130,7 +133,9 @@ def preset(name: str, **changes) -> RunSpec:
         if name == "fast":
             train = dataclasses.replace(train, model_horizon=50, total_transitions=3_200_000, epochs=10)
             hp = hp.replace(lr_actor=1e-3)
-        base = RunSpec(train=train, hp=hp, task=make_config("practical", hover_centered_thrust=True))
+        memory = name == "fast_model_free"
+        task = make_config("practical", hover_centered_thrust=True, obs_memory=memory, obs_privileged=memory)
+        base = RunSpec(train=train, hp=hp, task=task)
     elif name == "mujoco":
         train = TrainConfig(num_envs=1, total_transitions=1_000_000, warmup_transitions=25_000,
                             buffer_size=1_000_000, updates_per_step=1, epochs=200)  # fmt: skip

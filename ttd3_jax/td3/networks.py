@@ -37,7 +37,7 @@ class MLP(nn.Module):
 
 class ResidualMLP(nn.Module):
     """A critic made for resolution (SimBa, Lee et al. 2024): a Dense embedding of width
-    ``2·hidden[0]``, one pre-LayerNorm residual block (Dense 4w, ReLU, Dense w) per entry of
+    w = ``hidden[0]``, one pre-LayerNorm residual block (Dense 4w, ReLU, Dense w) per entry of
     ``hidden``, a final LayerNorm and a linear output."""
 
     hidden: Sequence[int]
@@ -45,7 +45,7 @@ class ResidualMLP(nn.Module):
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        w = 2 * self.hidden[0]
+        w = self.hidden[0]
         x = nn.Dense(w)(x)
         for _ in self.hidden:
             x = x + nn.Dense(w)(nn.relu(nn.Dense(4 * w)(nn.LayerNorm()(x))))
