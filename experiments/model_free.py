@@ -28,6 +28,7 @@ from ttd3_jax import spec as sp
 from ttd3_jax.control.paper import PAPER_TTD3
 from ttd3_jax.report import device_description
 from ttd3_jax.runner import run
+from ttd3_jax.runs import load_spec as runs_load_spec
 from ttd3_jax.runs import read_metrics
 
 SEEDS = 3
@@ -111,11 +112,19 @@ def spec_for(name: str) -> sp.RunSpec:
     return sp.replace(s, task=dataclasses.replace(s.task, **task_o), hp=s.hp.replace(**hp_o), **train_o)
 
 
-def measure(name: str, out: str, runs_dir: str) -> dict:
-    """Train direction ``name`` (3 seeds) under ``runs_dir`` and summarise it per seed."""
+def measure(name: str, out: str, runs_dir: str, resume: str | None = None) -> dict:
+    """Train direction ``name`` (3 seeds) under ``runs_dir``, or continue its interrupted run
+    ``resume``, and summarise it per seed.  The wall time of a resumed run adds the epochs
+    logged before the interruption to this call's."""
+    before = 0.0
+    if resume is not None:
+        if sp.to_dict(spec_for(name)) != sp.to_dict(runs_load_spec(resume)):
+            raise ValueError(f"--resume {resume!r} is not a run of direction {name!r}")
+        done = {r["epoch"]: float(r["wall_s"]) for r in read_metrics(resume)}
+        before = sum(done.values())
     t0 = time.perf_counter()
-    summary = run(spec_for(name), out=os.path.join(runs_dir, name))
-    wall = time.perf_counter() - t0
+    summary = run(spec_for(name), out=os.path.join(runs_dir, name), resume=resume)
+    wall = before + time.perf_counter() - t0
     rows = read_metrics(summary["run_dir"])
     seeds = []
     for i, seed in enumerate(summary["seeds"]):
@@ -172,6 +181,7 @@ def main(argv=None):
     ap.add_argument("--runs", default="runs/model_free", help="run directories (checkpoints: large)")
     ap.add_argument("--list", action="store_true")
     ap.add_argument("--table-only", action="store_true", help="only rebuild table.md")
+    ap.add_argument("--resume", default=None, help="continue this interrupted run of the one --direction")
     a = ap.parse_args(argv)
     if a.list:
         for name, (what, e, c, h) in DIRECTIONS.items():
@@ -183,10 +193,12 @@ def main(argv=None):
         ap.error(f"unknown direction(s) {bad}; allowed: {list(DIRECTIONS)}")
     for n in names:
         spec_for(n)  # every spec validates before the first compile
+    if a.resume and len(names) != 1:
+        ap.error("--resume continues one run: give exactly one --direction")
     os.makedirs(a.out, exist_ok=True)
     if not a.table_only:
         for n in names:
-            measure(n, a.out, a.runs)
+            measure(n, a.out, a.runs, a.resume)
     text = table(a.out)
     with open(os.path.join(a.out, "table.md"), "w") as fh:
         fh.write(text)

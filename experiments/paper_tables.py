@@ -79,9 +79,11 @@ def train(algo: str, preset: str, overrides: dict, runs_dir: str) -> tuple[str, 
 
 
 def env_preset_of(cfg: EnvConfig) -> str:
-    """The env preset ``cfg`` is (with its thrust centring), or ``"custom"``."""
-    same = (p for p in PRESETS if cfg == make_config(p, hover_centered_thrust=cfg.hover_centered_thrust))
-    return next(same, "custom")
+    """The env preset ``cfg`` is (with its thrust centring and observation extras), or ``"custom"``."""
+    extras = [name for name in ("obs_memory", "obs_privileged") if getattr(cfg, name)]
+    base = dataclasses.replace(cfg, obs_memory=False, obs_privileged=False)
+    same = (p for p in PRESETS if base == make_config(p, hover_centered_thrust=cfg.hover_centered_thrust))
+    return next(same, "custom") + "".join(f" + {e}" for e in extras)
 
 
 # --------------------------------------------------------------------------- evaluation

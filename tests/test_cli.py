@@ -39,7 +39,10 @@ from ttd3_jax.train import main
             ["--preset", "mujoco", "--task.e-max", "1.5"],
             r"--task.\* sets the quadrotor env; env 'hopper' has none",
         ),
-        (["--preset", "quick"], r"--preset must be one of \('fast', 'fast_dpg', 'fast_model_free', 'paper', 'mujoco'\)"),
+        (
+            ["--preset", "quick"],
+            r"--preset must be one of \('fast', 'fast_dpg', 'fast_model_free', 'paper', 'mujoco'\)",
+        ),
         (["--resume", "/nonexistent/run"], "not a ttd3_jax run directory"),
         (
             ["--resume", "/nonexistent/run", "--preset", "fast"],

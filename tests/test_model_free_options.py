@@ -101,3 +101,17 @@ def test_one_epoch_with_every_option_trains_and_stays_finite():
     ts, m = jax.jit(t.epoch)(ts, s.hp)
     assert ts.actor["params"]["Dense_0"]["kernel"].shape == (24, 32)
     assert all(np.isfinite(float(m[k])) for k in ("critic_loss", "actor_loss", "q_mean"))
+
+
+def test_every_direction_builds_and_the_preset_is_the_best_one():
+    import importlib.util
+    import os
+
+    path = os.path.join(os.path.dirname(__file__), "..", "experiments", "model_free.py")
+    spec = importlib.util.spec_from_file_location("model_free", path)
+    mf = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mf)
+    for name in mf.DIRECTIONS:
+        assert mf.spec_for(name).num_seeds == 3
+    assert mf.spec_for("memory_privileged") == sp.preset("fast_model_free", num_seeds=3)
+    assert mf.beats(25.0, 398.0) and not mf.beats(25.0, 400.0) and not mf.beats(None, 1.0)
