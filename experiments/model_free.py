@@ -84,6 +84,12 @@ DIRECTIONS = {
         {"total_transitions": 1_350_000, "buffer_size": 1_350_000, "epochs": 30},
         {},
     ),
+    "memory_privileged_residual": (
+        "memory_privileged with the residual critic",
+        {"obs_memory": True, "obs_privileged": True},
+        {"critic_arch": "residual"},
+        {},
+    ),
     "gamma_0.95": (
         "discount 0.95 (0.2 s horizon at 10 ms): a smaller Q, its fitting error smaller beside an action",
         {},
