@@ -212,10 +212,10 @@ def test_policy_selected_on_validation_tracks_is_saved_and_reloads(tmp_path):
 
 
 def test_fast_preset_model_actor_learns_on_a_small_budget(tmp_path):
-    """The default ``fast`` preset's first epoch (99 model-based actor updates, 320k
-    transitions, one seed; about 40 s on 2 CPU cores).  The untrained policy scores about
-    4e4 on both tracks; measured first epochs gave Spiral-RT 75-117 and LOS-RT 385-441, and
-    the bars are about 3x and 2x above those."""
+    """The default ``fast`` preset's first epoch (50 model-based actor updates, 170k
+    transitions, one seed; about 30 s on 2 CPU cores).  The untrained policy scores about
+    4e4 on both tracks; first epochs measured at this point of training gave Spiral-RT
+    22-152 and LOS-RT 237-396 (seeds 0-2), and the bars are about 2x above the worst."""
     part = run(sp.preset("fast"), out=str(tmp_path), verbose=False, stop_after=1)
     (row,) = runs.read_metrics(part["run_dir"])
     sp_, los = float(row["spiral_tracking_error"]), float(row["los_tracking_error"])

@@ -17,8 +17,9 @@ from ttd3_jax.td3.config import Hyper, TrainConfig
 def test_presets_are_what_the_docs_say():
     fast, dpg, paper, mujoco = (sp.preset(n) for n in ("fast", "fast_dpg", "paper", "mujoco"))
     assert fast.train.model_horizon == 50 and dpg.train.model_horizon == 0
-    assert dataclasses.replace(fast.train, model_horizon=0, total_transitions=450_000, epochs=15) == dpg.train
-    assert fast.hp == dpg.hp.replace(lr_actor=1e-3)
+    back = dict(model_horizon=0, total_transitions=450_000, epochs=15, updates_per_step=16)
+    assert dataclasses.replace(fast.train, **back) == dpg.train
+    assert fast.hp == dpg.hp.replace(lr_actor=1e-2)
     assert fast.task == dpg.task == make_config("practical", hover_centered_thrust=True)
     assert paper == sp.RunSpec() and paper.task == make_config("paper") and paper.train == TrainConfig()
     assert mujoco.env == "hopper" and mujoco.train.num_envs == 1 and mujoco.hp.target_clip == 0.5

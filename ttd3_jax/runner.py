@@ -131,40 +131,65 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = 
             f"({c.warmup_steps * c.num_envs:,} warm-up, then {c.epochs} epochs x {c.steps_per_epoch} vector "
             f"steps x {c.env_steps_per_step} env steps x {c.num_envs} envs)")  # fmt: skip
     live = LiveBar(spec) if verbose and sys.stdout.isatty() else None
+    stages, t = {}, time.perf_counter()
     trainer = sp.trainer_for(spec, on_progress=live)
     check_memory(spec, trainer.env.obs_size, trainer.env.action_size)
     keys, hp = seed_keys(spec.seed, spec.num_seeds), spec.hp
     # plain jit on one device; seeds (and envs) split over all visible devices otherwise
     init_fn, epoch_fn, eval_fn, place = runner_fns(trainer, keys, hp)
-    t0 = time.perf_counter()
+    t = _stage(stages, "construct", t)
     if resume is None:
         run_dir = runs.new_run_dir(out, spec)
         mngr = ckpt.manager(run_dir)
-        ts, start = init_fn(keys, hp), 0  # warm-up collection included
-        ckpt.save(mngr, 0, jax.block_until_ready(ts))
+        init_c, t = _program(stages, "init", init_fn, (keys, hp), t)
+        ts, start = jax.block_until_ready(init_c(keys, hp)), 0  # warm-up collection included
+        t = _stage(stages, "warmup", t)
+        ckpt.save(mngr, 0, ts)
+        t = _stage(stages, "first_checkpoint", t)
         csv_log = runs.CsvLog(os.path.join(run_dir, "metrics.csv"))
         log(f"run dir {run_dir}")
-        log(f"init + warm-up ({c.warmup_steps * c.num_envs} random transitions/seed): "
-            f"{time.perf_counter() - t0:.1f} s")  # fmt: skip
+        init_s = stages["init_lower_s"] + stages["init_compile_s"]
+        log(f"init + warm-up ({c.warmup_steps * c.num_envs} transitions per seed): compile {init_s:.1f} s, "
+            f"run {stages['warmup_s']:.1f} s, checkpoint {stages['first_checkpoint_s']:.1f} s")  # fmt: skip
     else:
         run_dir, (ts, start, csv_log) = resume, _resume(resume, init_fn, keys, hp, place, log)
         mngr = ckpt.manager(run_dir)  # after _resume deleted what does not load
-    t1 = time.perf_counter()
-    epoch_c = epoch_fn.lower(ts, hp).compile()
-    eval_c = eval_fn.lower(jax.eval_shape(lambda t: t, ts)).compile()
-    compile_s = time.perf_counter() - t1
-    log(f"compiled epoch + eval in {compile_s:.1f} s; {spec.num_seeds} seed(s) x {c.num_envs} envs, "
-        f"{c.steps_per_epoch} vector steps x {c.updates_per_step} updates per epoch")  # fmt: skip
+        t = _stage(stages, "restore", t)
+    epoch_c, t = _program(stages, "epoch", epoch_fn, (ts, hp), t)
+    eval_c, t = _program(stages, "eval", eval_fn, (jax.eval_shape(lambda t: t, ts),), t)
+    ep_s, ev_s = (stages[f"{p}_lower_s"] + stages[f"{p}_compile_s"] for p in ("epoch", "eval"))
+    log(f"compiled epoch + eval in {ep_s + ev_s:.1f} s (epoch {ep_s:.1f} s, eval {ev_s:.1f} s); "
+        f"{spec.num_seeds} seed(s) x {c.num_envs} envs, {c.steps_per_epoch} vector steps x "
+        f"{c.updates_per_step} updates per epoch")  # fmt: skip
     last = c.epochs if stop_after is None else min(c.epochs, start + stop_after)
     loop = _Loop(spec, run_dir, mngr, csv_log, epoch_c, eval_c, live, log, checkpoint_every)
-    ts, ev, run_s = _epochs(loop, ts, start, last)
+    ts, ev, run_s, stages["epochs"] = _epochs(loop, ts, start, last)
     if last < c.epochs:
         log(f"stopped after epoch {last}/{c.epochs}; continue with --resume {run_dir}")
         return {"run_dir": run_dir, "stopped_at": last}
-    summary = _finish(run_dir, spec, ev if ev is not None else jax.device_get(eval_c(ts)), compile_s, run_s)
+    ev = ev if ev is not None else jax.device_get(eval_c(ts))
+    summary = _finish(run_dir, spec, ev, ep_s + ev_s, run_s, stages)
     extra = ", best/ (the policy selected on the validation tracks)" if spec.is_quadrotor else ""
     log(f"results in {run_dir}: metrics.csv, eval.json, learning_curve.png, checkpoints/{extra}")
     return summary
+
+
+def _program(stages: dict, name: str, fn, args: tuple, t: float):
+    """Program ``name`` traced and compiled for ``args`` (the persistent compilation cache
+    may answer the compile), both times recorded in ``stages``; returns it and the time now."""
+    lowered = fn.lower(*args)
+    t1 = time.perf_counter()
+    exe = lowered.compile()
+    now = time.perf_counter()
+    stages.update({f"{name}_lower_s": t1 - t, f"{name}_compile_s": now - t1})
+    return exe, now
+
+
+def _stage(stages: dict, name: str, t: float) -> float:
+    """Record ``stages[name + "_s"]``, the seconds since ``t``; returns the time now."""
+    now = time.perf_counter()
+    stages[f"{name}_s"] = now - t
+    return now
 
 
 def _resume(run_dir: str, init_fn, keys, hp, place, log):
@@ -200,7 +225,7 @@ def _epochs(loop: _Loop, ts, start: int, last: int):
     """Epochs ``start + 1 … last``: train, check, evaluate, log, select, checkpoint."""
     spec, run_dir, mngr, csv_log, epoch_c, eval_c, live, log, every = loop
     tb = report.tensorboard(run_dir)
-    run_s, ev = 0.0, None
+    run_s, ev, timings = 0.0, None, []
     for epoch in range(start + 1, last + 1):
         te = time.perf_counter()
         if live is not None:
@@ -208,6 +233,7 @@ def _epochs(loop: _Loop, ts, start: int, last: int):
         steps_before = float(np.mean(np.asarray(ts.n_tr)))
         ts, m = epoch_c(ts, spec.hp)
         m = jax.device_get(m)
+        t_train = time.perf_counter() - te
         check_finite(m, ts, epoch, run_dir, mngr)
         ev = jax.device_get(eval_c(ts))
         dt = time.perf_counter() - te
@@ -228,19 +254,22 @@ def _epochs(loop: _Loop, ts, start: int, last: int):
                         tb.add_scalar(f"seed{row['seed']}/{k}", v, int(row["env_steps"]))
         if epoch % every == 0 or epoch == last:
             ckpt.save(mngr, epoch, ts)
+        host_s = time.perf_counter() - te - dt  # logs, selection, checkpoint
+        timings.append(dict(epoch=epoch, train_s=t_train, eval_s=dt - t_train, host_s=host_s))
         if live is not None:
             live.clear()
         log(progress_line(epoch, spec.train.epochs, m, ev, sps), flush=True)
     if tb is not None:
         tb.close()
-    return ts, ev, run_s
+    return ts, ev, run_s, timings
 
 
-def _finish(run_dir: str, spec: sp.RunSpec, ev, compile_s: float, run_s: float) -> dict:
+def _finish(run_dir: str, spec: sp.RunSpec, ev, compile_s: float, run_s: float, stages: dict) -> dict:
     seed_evals = [{k: float(np.asarray(v)[i]) for k, v in ev.items()} for i in range(spec.num_seeds)]
     seeds = list(range(spec.seed, spec.seed + spec.num_seeds))
     summary = dict(run_dir=run_dir, env=spec.env, algo=spec.algo, seeds=seeds, final_eval=seed_evals,
-                   compile_s=compile_s, train_s=run_s, device=jax.devices()[0].device_kind)  # fmt: skip
+                   compile_s=compile_s, train_s=run_s, device=jax.devices()[0].device_kind,
+                   stages=stages)  # fmt: skip
     if spec.is_quadrotor:
         summary["paper_ttd3"] = PAPER_TTD3
         summary["beats_paper"] = [beats_paper(s) for s in seed_evals]

@@ -114,7 +114,8 @@ def preset(name: str, **changes) -> RunSpec:
     observation) with hover-centred thrust, running observation normalisation, 64-64
     networks, 64 envs, rewards scaled by 0.01, and (not in the paper) a model-based actor
     update: 0.5 s rollouts (``model_horizon=50``) back-propagated through the simulator,
-    actor lr 1e-3.  The twin critics are still trained by TD3; the actor does not use them.
+    actor lr 1e-2, 1.6M transitions.  The twin critics are still trained by TD3 (2 updates
+    per rollout, which keep T-TD3's σ schedule running); the actor does not use them.
     ``fast_dpg``: ``fast`` with the paper's actor update (∂Q₁/∂a through the critic), 450k
     transitions, 16 updates per 64-env step; it plateaus (docs/results.md).
     ``fast_model_free``: ``fast_dpg`` with the observation's memory (last action, error
@@ -131,8 +132,9 @@ def preset(name: str, **changes) -> RunSpec:
                             normalize_obs=True, epochs=15)  # fmt: skip
         hp = Hyper(tau=0.005, reward_scale=0.01)
         if name == "fast":
-            train = dataclasses.replace(train, model_horizon=50, total_transitions=3_200_000, epochs=10)
-            hp = hp.replace(lr_actor=1e-3)
+            train = dataclasses.replace(train, model_horizon=50, total_transitions=1_600_000, epochs=10,
+                                        updates_per_step=2)  # fmt: skip
+            hp = hp.replace(lr_actor=1e-2)
         memory = name == "fast_model_free"
         task = make_config("practical", hover_centered_thrust=True, obs_memory=memory, obs_privileged=memory)
         base = RunSpec(train=train, hp=hp, task=task)
