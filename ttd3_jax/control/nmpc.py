@@ -19,12 +19,14 @@ the quaternion error takes the sign with a non-negative scalar part.  The input 
 on ``ũ = (c, ω)`` with the mass-normalised thrust c (m/s²), as in rpg_mpc, so ``R =
 diag(w_input)`` means the same under both thrust units.
 
-Solver: r(U) stacks the weighted state residuals (9 per node); its Jacobian (9N × 4N) comes
-from ``jax.jacfwd`` through a ``lax.scan`` rollout, so ``H = JᵀJ + R + reg·I`` and
-``g = Jᵀr + R(U − U_ref)``.  The box QP on ΔU is solved by FISTA (``fista_iters`` steps of
-1/L) on Jacobi-scaled variables ``ΔU = D z``, ``D = diag(H)^{-½}``, with L = 1.1 × a power-
-iteration estimate of λ_max(DHD).  The step is ``U + αΔU`` with the first α in (1, ½, ¼, ⅛)
-that lowers the true cost (one batch), else U is kept (``line_search=False``: α = 1).
+Solver: r(U) stacks the weighted state residuals (9 per node); its Jacobian J (9N × 4N)
+comes from the node Jacobians of the RK4 step (all nodes at once) and a condensing
+recursion (:meth:`NMPC.linearize`), so ``H = JᵀJ + R + reg·I`` and ``g = Jᵀr + R(U −
+U_ref)``.  The box QP on ΔU is solved by projected Newton (:meth:`NMPC._box_qp`: one
+Cholesky per active-set change, at most ``qp_iters``; with no active bound, the common
+case, it is the exact Newton step).  The step is ``U + αΔU`` with the first α in
+(1, ½, ¼, ⅛) that lowers the true cost (α < 1 only tried when α = 1 fails), else U is kept
+(``line_search=False``: α = 1).
 
 Closed loop (:func:`nmpc_controller`): the first call runs ``sqp_iters_first`` iterations
 from ``U_ref``; later ones re-solve every ``solve_every`` control steps with ``sqp_iters``
@@ -41,6 +43,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 from flax import struct
+from jax.flatten_util import ravel_pytree
+from jax.scipy.linalg import cho_solve
 
 from ttd3_jax.control.closed_loop import Controller
 from ttd3_jax.sim import trajectories as tr
@@ -48,6 +52,8 @@ from ttd3_jax.sim.dynamics import QuadParams, QuadState, quat_conj, quat_mul, rk
 from ttd3_jax.sim.env import control_to_action
 
 LINE_SEARCH_ALPHAS = (1.0, 0.5, 0.25, 0.125)
+QP_STEPS = tuple(0.5**i for i in range(10))  # step sizes the box QP's projected Newton tries
+QP_EPS = 0.1  # most distance (scaled units) at which a bound counts as active
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,8 +72,7 @@ class NMPCConfig:
     weight_scale: float = 4.0
     sqp_iters_first: int = 30  # Gauss-Newton iterations of the first solve
     sqp_iters: int = 1  # iterations of every later solve (1 = RTI)
-    fista_iters: int = 100  # projected-gradient iterations of the box QP
-    power_iters: int = 20  # power iterations for the Lipschitz constant
+    qp_iters: int = 8  # most projected-Newton iterations of the box QP (it stops when solved)
     solve_every: int = 1  # control steps between re-solves
     line_search: bool = True  # α ∈ {1, ½, ¼, ⅛} on the true cost
     node_substeps: int = 1  # RK4 steps per node interval
@@ -93,8 +98,8 @@ class NMPCConfig:
 
 
 # the bounds NMPCConfig checks: integers in [1, hi], numbers in (0, hi], weights (> 0 if True)
-_INTEGERS = {"horizon": 500, "sqp_iters_first": 1000, "sqp_iters": 1000, "fista_iters": 10_000,
-             "power_iters": 1000, "solve_every": 100_000, "node_substeps": 100}  # fmt: skip
+_INTEGERS = {"horizon": 500, "sqp_iters_first": 1000, "sqp_iters": 1000, "qp_iters": 1000,
+             "solve_every": 100_000, "node_substeps": 100}  # fmt: skip
 _NUMBERS = {"dt_node": 1.0, "weight_scale": 1e6, "regularization": 1.0}
 _WEIGHTS = {"w_pos": True, "w_vel": False, "w_att": False, "w_input": False}
 
@@ -192,62 +197,124 @@ class NMPC:
         return 0.5 * (jnp.sum(r * r) + jnp.sum(jnp.asarray(self._r, U.dtype) * du * du))
 
     def _box_qp(self, H, g, lo, hi):
-        """FISTA on min ½ΔᵀHΔ + gᵀΔ, lo ≤ Δ ≤ hi (Jacobi-scaled); returns Δ."""
-        cfg = self.cfg
+        """min ½ΔᵀHΔ + gᵀΔ, lo ≤ Δ ≤ hi (lo ≤ 0 ≤ hi); returns Δ.
+
+        Projected Newton (Bertsekas 1982) on Jacobi-scaled variables ``Δ = D z``, ``D =
+        diag(H)^{-½}``, from z = 0: each iteration fixes the ε-active bounds whose gradient
+        points out of the box, solves the Newton system on the rest (one Cholesky) and takes
+        the first step of ``QP_STEPS`` along the projection arc that passes Armijo's test.
+        It stops when the active set repeats after a full, unclipped step (the solution: in
+        most RTI steps no bound is active and this is the first iteration), when no step
+        decreases the objective, or after ``qp_iters`` iterations."""
         d = jax.lax.rsqrt(jnp.diag(H))
         Hs = H * d[:, None] * d[None, :]
         gs, ls, hs = g * d, lo / d, hi / d
+        dt = g.dtype
+        steps = jnp.asarray(QP_STEPS, dt)
 
-        def power(_, v):
-            w = Hs @ v
-            return w / jnp.linalg.norm(w)
+        def clamped(z, grad):
+            eps = jnp.minimum(QP_EPS, jnp.linalg.norm(z - jnp.clip(z - grad, ls, hs)))
+            return ((z <= ls + eps) & (grad > 0)) | ((z >= hs - eps) & (grad < 0))
 
-        v = jax.lax.fori_loop(0, cfg.power_iters, power, jnp.ones_like(g) / math.sqrt(g.shape[0]))
-        L = 1.1 * jnp.dot(v, Hs @ v)
-
-        def fista(_, c):
-            z, y, t = c
-            z_new = jnp.clip(y - (Hs @ y + gs) / L, ls, hs)
-            t_new = 0.5 * (1.0 + jnp.sqrt(1.0 + 4.0 * t * t))
-            y_new = z_new + ((t - 1.0) / t_new) * (z_new - z)
-            return z_new, y_new, t_new
+        def body(c):
+            z, grad, fixed, it, _ = c
+            free = (~fixed).astype(dt)
+            Hf = Hs * free[:, None] * free[None, :] + jnp.diag(1.0 - free)
+            step = -cho_solve((jnp.linalg.cholesky(Hf), True), grad * free)
+            Z = jnp.clip(z[:, None] + step[:, None] * steps[None], ls[:, None], hs[:, None])
+            dZ = Z - z[:, None]
+            # objective change of each candidate, and Armijo's test along the arc
+            df = jnp.sum(dZ * (0.5 * (Hs @ dZ) + grad[:, None]), 0)
+            ok = df <= 1e-4 * steps * jnp.dot(grad, step)
+            i = jnp.argmax(ok)
+            z_new = jnp.where(ok[i], Z[:, i], z)
+            grad_new = Hs @ z_new + gs
+            fixed_new = clamped(z_new, grad_new)
+            full = ok[0] & jnp.all(dZ[:, 0] == step)
+            done = ~ok[i] | (full & jnp.all(fixed_new == fixed))
+            return z_new, grad_new, fixed_new, it + 1, done
 
         z0 = jnp.zeros_like(g)  # feasible: U itself is inside the box
-        one = jnp.ones((), g.dtype)
-        z, _, _ = jax.lax.fori_loop(0, cfg.fista_iters, fista, (z0, z0, one))
+        c0 = (z0, gs, clamped(z0, gs), 0, False)
+        z = jax.lax.while_loop(lambda c: (c[3] < self.cfg.qp_iters) & ~c[4], body, c0)[0]
         return z * d
+
+    def linearize(self, x0: QuadState, ref: References, U: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """:meth:`state_residual` r (9N,) and its Jacobian (9N, 4N) in ``U`` (flattened).
+
+        One rollout, then the node Jacobians ``A_i = ∂x_{i+1}/∂x_i``, ``B_i = ∂x_{i+1}/∂u_i``
+        and the attitude residual's ``∂r_i/∂q_i``, all nodes at once (``vmap`` of ``jacfwd``),
+        and the sensitivities ``S_{i+1} = A_i S_i + [0 … B_i … 0]`` (``S_i = ∂x_i/∂U``) in one
+        short scan: the same J as ``jacfwd`` through the rollout, without carrying 4N tangents
+        through the N sequential RK4 steps (faster on CPU: benchmarks/nmpc_speed.py)."""
+        cfg, params, n = self.cfg, self.params, self.cfg.horizon
+        xf0, unravel = ravel_pytree(x0)
+        nx = xf0.shape[0]
+        sqrt_q = jnp.asarray(self._sqrt_q, U.dtype)
+
+        def f(xf, u):
+            return ravel_pytree(rk4_step(params, unravel(xf), u, cfg.dt_node, substeps=cfg.node_substeps))[0]
+
+        def att_residual(q, q_ref):
+            dq = quat_mul(quat_conj(q_ref), q)
+            return jnp.where(dq[:1] < 0, -dq[1:], dq[1:]) * sqrt_q[6:]
+
+        xs = jax.lax.scan(lambda x, u: (f(x, u),) * 2, xf0, U)[1]  # (N, nx), nodes 1..N
+        A, B = jax.vmap(jax.jacfwd(f, argnums=(0, 1)))(jnp.concatenate([xf0[None], xs[:-1]]), U)
+        # ravel_pytree(QuadState) is [p, v, q, w]: ∂r/∂(p, v) is diagonal, ∂r/∂q is Cq
+        q_ref = ref.quat
+        r = jnp.concatenate([(xs[:, :3] - ref.pos) * sqrt_q[:3], (xs[:, 3:6] - ref.vel) * sqrt_q[3:6],
+                             jax.vmap(att_residual)(xs[:, 6:10], q_ref)], -1)  # fmt: skip
+        Cq = jax.vmap(jax.jacfwd(att_residual))(xs[:, 6:10], q_ref)  # (N, 3, 4)
+
+        def sensitivity(S, abe):  # S (nx, N, 4): ∂x_i/∂U
+            a, b, e = abe
+            S = (a @ S.reshape(nx, 4 * n)).reshape(nx, n, 4) + b[:, None, :] * e[None, :, None]
+            return S, S
+
+        S0 = jnp.zeros((nx, n, 4), U.dtype)
+        S = jax.lax.scan(sensitivity, S0, (A, B, jnp.eye(n, dtype=U.dtype)))[1].reshape(n, nx, 4 * n)
+        J = jnp.concatenate(
+            [S[:, :6] * sqrt_q[None, :6, None], jnp.einsum("jrq,jqk->jrk", Cq, S[:, 6:10])], 1
+        )
+        return r.reshape(-1), J.reshape(9 * n, 4 * n)
 
     def gn_step(self, x0: QuadState, ref: References, U: jax.Array, cost_u: jax.Array | None = None):
         """One Gauss-Newton SQP iteration. Returns ``(U_new, J(U_new))``."""
         cfg = self.cfg
-        if cost_u is None:
-            cost_u = self.cost(x0, ref, U)
-        res = lambda u: self.state_residual(x0, ref, u.reshape(U.shape))
         u_flat = U.reshape(-1)
-        r = res(u_flat)
-        J = jax.jacfwd(res)(u_flat)  # (9N, 4N)
+        r, J = self.linearize(x0, ref, U)
         rw = jnp.tile(jnp.asarray(self._r, U.dtype), cfg.horizon)
+        du = u_flat - ref.u.reshape(-1)
+        if cost_u is None:
+            cost_u = 0.5 * (jnp.sum(r * r) + jnp.sum(rw * du * du))
         H = J.T @ J + jnp.diag(rw + cfg.regularization)
-        g = J.T @ r + rw * (u_flat - ref.u.reshape(-1))
+        g = r @ J + rw * du
         lb, ub = self.bounds(U.dtype)
         delta = self._box_qp(H, g, lb.reshape(-1) - u_flat, ub.reshape(-1) - u_flat).reshape(U.shape)
         if not cfg.line_search:
             U_new = jnp.clip(U + delta, lb, ub)
             return U_new, self.cost(x0, ref, U_new)
-        alphas = jnp.asarray(LINE_SEARCH_ALPHAS, U.dtype)
-        cands = jnp.clip(U[None] + alphas[:, None, None] * delta[None], lb, ub)
-        costs = jax.vmap(lambda u: self.cost(x0, ref, u))(cands)
-        ok = jnp.isfinite(costs) & (costs < cost_u)
-        i = jnp.argmax(ok)  # first α that decreases the cost
-        accept = ok[i]
-        return jnp.where(accept, cands[i], U), jnp.where(accept, costs[i], cost_u)
+        U_full = jnp.clip(U + delta, lb, ub)
+        cost_full = self.cost(x0, ref, U_full)
+
+        def backtrack(_):  # the full step failed (rare after an exact QP solve): try α < 1
+            alphas = jnp.asarray(LINE_SEARCH_ALPHAS[1:], U.dtype)
+            cands = jnp.clip(U[None] + alphas[:, None, None] * delta[None], lb, ub)
+            costs = jax.vmap(lambda u: self.cost(x0, ref, u))(cands)
+            ok = jnp.isfinite(costs) & (costs < cost_u)
+            i = jnp.argmax(ok)  # first α that decreases the cost
+            return jnp.where(ok[i], cands[i], U), jnp.where(ok[i], costs[i], cost_u)
+
+        full_ok = jnp.isfinite(cost_full) & (cost_full < cost_u)
+        return jax.lax.cond(full_ok, lambda _: (U_full, cost_full), backtrack, None)
 
     def solve(self, x0: QuadState, ref: References, U: jax.Array, iters) -> tuple[jax.Array, jax.Array]:
         """``iters`` (may be traced) Gauss-Newton iterations from ``U``; returns (U, J(U))."""
         lb, ub = self.bounds(U.dtype)
         U = jnp.clip(U, lb, ub)
-        c0 = self.cost(x0, ref, U)
-        return jax.lax.fori_loop(0, iters, lambda _, c: self.gn_step(x0, ref, *c), (U, c0))
+        c0 = jnp.full((), jnp.nan, U.dtype)  # J of the first iterate comes from its linearisation
+        return jax.lax.fori_loop(0, iters, lambda _, c: self.gn_step(x0, ref, c[0]), (U, c0))
 
     def shift(self, U: jax.Array, seconds) -> jax.Array:
         """Warm start: the plan advanced by ``seconds`` (linear interpolation between
