@@ -11,7 +11,7 @@ loop without a controller), and with ``--baseline REV`` the NMPC module of git r
 ``REV`` with its default config (the solver before a change, timed beside it).
 
     python benchmarks/nmpc_speed.py                      # Spiral-RT and LOS-RT, 5 repeats
-    python benchmarks/nmpc_speed.py --baseline main      # + the NMPC of branch main
+    python benchmarks/nmpc_speed.py --baseline 6cb81cf   # + the NMPC before the 2026-12-03 solver
     python benchmarks/nmpc_speed.py --quick              # smoke run (CI): 200 steps, 1 repeat
 
 Prints a table (track, case, compile s, best run s, × hover, × default, Σ‖e‖) and appends
