@@ -46,11 +46,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
-import json
 import os
 import platform
 import time
 
+import _peers
 import jax
 import jax.numpy as jnp
 
@@ -301,11 +301,7 @@ def main(argv=None):
         ratios=extra,
         goals=goals,
     )
-    if args.out:
-        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-        with open(args.out, "a") as fh:
-            fh.write(json.dumps(record) + "\n")
-        print(f"appended to {args.out}")
+    _peers.append_record(args.out, record)
     return record
 
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import importlib.util
-import json
 import os
 import platform
 import subprocess
@@ -31,6 +30,7 @@ import sys
 import tempfile
 import time
 
+import _peers
 import jax
 
 from ttd3_jax.control.closed_loop import hover_controller, sensed_controller, test_tracks
@@ -142,11 +142,7 @@ def main(argv=None):
         rows=rows,
         goals=goals,
     )
-    if args.out:
-        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-        with open(args.out, "a") as fh:
-            fh.write(json.dumps(record) + "\n")
-        print(f"appended to {args.out}")
+    _peers.append_record(args.out, record)
     return record
 
 

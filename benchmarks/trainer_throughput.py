@@ -32,11 +32,11 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
 import platform
 import time
 
+import _peers
 import jax
 
 from ttd3_jax import spec as sp
@@ -179,11 +179,7 @@ def main(argv=None):
         large=args.large,
         rows=rows,
     )
-    if args.out:
-        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-        with open(args.out, "a") as fh:
-            fh.write(json.dumps(record) + "\n")
-        print(f"appended to {args.out}")
+    _peers.append_record(args.out, record)
     return record
 
 
