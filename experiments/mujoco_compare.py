@@ -479,6 +479,12 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--device-note", default="", help="free text about the machine, for README.md")
     p.add_argument("--out", default="results/mujoco")
     p.add_argument("--report-only", action="store_true", help="only rebuild evals.csv, summary, figure")
+    p.add_argument(
+        "--compile-cache",
+        default=None,
+        help="XLA compilation cache directory, or 'none' (default ~/.cache/ttd3_jax/xla): a resume "
+        "loads the compiled programs instead of compiling them again",
+    )
     a = p.parse_args(argv)
     for name in ("seeds", "steps", "eval_every", "eval_episodes", "num_envs", "checkpoint_every", "parallel"):
         if getattr(a, name) < 1:
@@ -497,6 +503,9 @@ def main(argv: list[str] | None = None) -> int:
         for t, al in jobs:  # every config error before anything is compiled
             task_config(t, al, a)
         os.makedirs(a.out, exist_ok=True)
+        from ttd3_jax.cache import use_compile_cache
+
+        use_compile_cache(a.compile_cache)
         if a.parallel > 1 and len(jobs) > 1:
             run_parallel(jobs, a, argv)
         else:

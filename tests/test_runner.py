@@ -133,6 +133,26 @@ def test_restored_state_lowers_to_the_fresh_runs_epoch_program(tmp_path):
         np.testing.assert_array_equal(x, y)
 
 
+def test_a_background_save_keeps_the_state_it_was_given_when_that_state_is_donated(tmp_path):
+    """``save(..., wait=False)`` on an asynchronous manager returns before the checkpoint is
+    on disk; the epoch program then donates (frees) the saved state.  The checkpoint still
+    holds the state as it was, and the next epoch's state is unaffected."""
+    s = tiny()
+    keys = seed_keys(s.seed, s.num_seeds)
+    init_fn, epoch_fn, _, _ = runner_fns(sp.trainer_for(s), keys, s.hp)
+    ts = init_fn(keys, s.hp)
+    before = [np.array(x) for x in jax.tree.leaves(ts)]
+    mngr = ckpt.manager(str(tmp_path), asynchronous=True)
+    ckpt.save(mngr, 0, ts, wait=False)
+    ts, _ = epoch_fn(ts, s.hp)  # donates the saved state's buffers
+    assert ckpt.latest_epoch(mngr) == 0  # waits for the background write
+    ckpt.finish(mngr)
+    restored = ckpt.restore(ckpt.manager(str(tmp_path)), 0, jax.eval_shape(init_fn, keys, s.hp))
+    for x, y in zip(before, jax.tree.leaves(restored), strict=True):
+        np.testing.assert_array_equal(x, y)
+    assert any(not np.array_equal(x, np.asarray(y)) for x, y in zip(before, jax.tree.leaves(ts), strict=True))
+
+
 def test_epochs_reuse_one_program_with_no_host_transfers_and_donated_state():
     """The runner's epoch function compiles once for all epochs, runs with implicit
     host<->device transfers disallowed, and donates the train state."""

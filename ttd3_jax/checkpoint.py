@@ -1,7 +1,10 @@
 """Orbax checkpoints of the whole training state (optimiser state, buffer and key included).
 
-Saves are synchronous and atomic (orbax writes a temporary directory and renames
-it), so a run killed at any point keeps its last complete checkpoint.
+Saves are atomic (orbax writes a temporary directory and renames it), so a run killed at
+any point keeps its last complete checkpoint.  A manager made with ``asynchronous=True``
+(the trainer's, saving with ``wait=False``) copies the state to host memory and writes it in a
+background thread while training goes on; the next save, :func:`finish` and
+:func:`latest_epoch` wait for it.
 """
 
 from __future__ import annotations
@@ -28,20 +31,35 @@ def _pack(tree):
     return jax.tree.map(lambda x: jnp.zeros((1,), x.dtype) if _empty(x) else x, tree)
 
 
-def manager(run_dir: str, max_to_keep: int = 2) -> ocp.CheckpointManager:
+def manager(run_dir: str, max_to_keep: int = 2, asynchronous: bool = False) -> ocp.CheckpointManager:
+    """The checkpoints of ``run_dir`` (``run_dir/checkpoints``), the newest ``max_to_keep``
+    kept; ``asynchronous``: saves return once the state is copied, then write in the
+    background."""
     options = ocp.CheckpointManagerOptions(
-        max_to_keep=max_to_keep, enable_async_checkpointing=False, cleanup_tmp_directories=True
+        max_to_keep=max_to_keep, enable_async_checkpointing=asynchronous, cleanup_tmp_directories=True
     )
     return ocp.CheckpointManager(os.path.abspath(os.path.join(run_dir, "checkpoints")), options=options)
 
 
-def save(mngr: ocp.CheckpointManager, epoch: int, state) -> None:
-    """Save ``state`` as checkpoint ``epoch`` (epochs completed) and wait for it."""
+def save(mngr: ocp.CheckpointManager, epoch: int, state, wait: bool = True) -> None:
+    """Save ``state`` as checkpoint ``epoch`` (epochs completed).  ``wait``: return once it
+    is on disk.  Otherwise (with an ``asynchronous`` manager) return once ``state`` is copied
+    to host memory: a private copy, so the caller may donate ``state`` right away."""
+    if not wait:
+        state = jax.tree.map(np.array, jax.device_get(state))  # np.array copies
     mngr.save(epoch, args=ocp.args.StandardSave(_pack(state)), force=True)
+    if wait:
+        mngr.wait_until_finished()
+
+
+def finish(mngr: ocp.CheckpointManager) -> None:
+    """Wait until every save of ``mngr`` is on disk."""
     mngr.wait_until_finished()
 
 
 def latest_epoch(mngr: ocp.CheckpointManager) -> int | None:
+    """The newest checkpoint on disk (a save still being written is waited for)."""
+    mngr.wait_until_finished()
     return mngr.latest_step()
 
 

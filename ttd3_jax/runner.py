@@ -140,11 +140,11 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = 
     t = _stage(stages, "construct", t)
     if resume is None:
         run_dir = runs.new_run_dir(out, spec)
-        mngr = ckpt.manager(run_dir)
+        mngr = ckpt.manager(run_dir, asynchronous=True)
         init_c, t = _program(stages, "init", init_fn, (keys, hp), t)
         ts, start = jax.block_until_ready(init_c(keys, hp)), 0  # warm-up collection included
         t = _stage(stages, "warmup", t)
-        ckpt.save(mngr, 0, ts)
+        ckpt.save(mngr, 0, ts)  # on disk before compiling (a write alongside slows the compile)
         t = _stage(stages, "first_checkpoint", t)
         csv_log = runs.CsvLog(os.path.join(run_dir, "metrics.csv"))
         log(f"run dir {run_dir}")
@@ -153,17 +153,20 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = 
             f"run {stages['warmup_s']:.1f} s, checkpoint {stages['first_checkpoint_s']:.1f} s")  # fmt: skip
     else:
         run_dir, (ts, start, csv_log) = resume, _resume(resume, init_fn, keys, hp, place, log)
-        mngr = ckpt.manager(run_dir)  # after _resume deleted what does not load
+        mngr = ckpt.manager(run_dir, asynchronous=True)  # after _resume deleted what does not load
         t = _stage(stages, "restore", t)
-    epoch_c, t = _program(stages, "epoch", epoch_fn, (ts, hp), t)
-    eval_c, t = _program(stages, "eval", eval_fn, (jax.eval_shape(lambda t: t, ts),), t)
-    ep_s, ev_s = (stages[f"{p}_lower_s"] + stages[f"{p}_compile_s"] for p in ("epoch", "eval"))
-    log(f"compiled epoch + eval in {ep_s + ev_s:.1f} s (epoch {ep_s:.1f} s, eval {ev_s:.1f} s); "
-        f"{spec.num_seeds} seed(s) x {c.num_envs} envs, {c.steps_per_epoch} vector steps x "
-        f"{c.updates_per_step} updates per epoch")  # fmt: skip
-    last = c.epochs if stop_after is None else min(c.epochs, start + stop_after)
-    loop = _Loop(spec, run_dir, mngr, csv_log, epoch_c, eval_c, live, log, checkpoint_every)
-    ts, ev, run_s, stages["epochs"] = _epochs(loop, ts, start, last)
+    try:  # until the checkpoint being written in the background is on disk (also on errors, Ctrl-C)
+        epoch_c, t = _program(stages, "epoch", epoch_fn, (ts, hp), t)
+        eval_c, t = _program(stages, "eval", eval_fn, (jax.eval_shape(lambda t: t, ts),), t)
+        ep_s, ev_s = (stages[f"{p}_lower_s"] + stages[f"{p}_compile_s"] for p in ("epoch", "eval"))
+        log(f"compiled epoch + eval in {ep_s + ev_s:.1f} s (epoch {ep_s:.1f} s, eval {ev_s:.1f} s); "
+            f"{spec.num_seeds} seed(s) x {c.num_envs} envs, {c.steps_per_epoch} vector steps x "
+            f"{c.updates_per_step} updates per epoch")  # fmt: skip
+        last = c.epochs if stop_after is None else min(c.epochs, start + stop_after)
+        loop = _Loop(spec, run_dir, mngr, csv_log, epoch_c, eval_c, live, log, checkpoint_every)
+        ts, ev, run_s, stages["epochs"] = _epochs(loop, ts, start, last)
+    finally:
+        ckpt.finish(mngr)
     if last < c.epochs:
         log(f"stopped after epoch {last}/{c.epochs}; continue with --resume {run_dir}")
         return {"run_dir": run_dir, "stopped_at": last}
@@ -253,7 +256,7 @@ def _epochs(loop: _Loop, ts, start: int, last: int):
                     if math.isfinite(v):  # e.g. no episode ended: train_return is nan
                         tb.add_scalar(f"seed{row['seed']}/{k}", v, int(row["env_steps"]))
         if epoch % every == 0 or epoch == last:
-            ckpt.save(mngr, epoch, ts)
+            ckpt.save(mngr, epoch, ts, wait=False)  # written during the next epoch
         host_s = time.perf_counter() - te - dt  # logs, selection, checkpoint
         timings.append(dict(epoch=epoch, train_s=t_train, eval_s=dt - t_train, host_s=host_s))
         if live is not None:
