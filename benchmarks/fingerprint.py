@@ -15,6 +15,7 @@ then need re-running.  Run this before and after a change and compare the lines:
 project's 2-core CPU VM without AVX-512, ``fingerprint_avx512.txt`` those on one with it
 (XLA:CPU compiles for the instruction set it finds, which moves last bits; its first line
 names jax and the CPU; compare like with like: ``grep avx512f /proc/cpuinfo`` tells which).
+On an AVX-512 CPU, ``XLA_FLAGS=--xla_cpu_max_isa=AVX2`` gives the lines of fingerprint.txt.
 ``--compare FILE`` checks each line against FILE and exits 1 naming the ones that differ.
 
 Each line is ``name sha256-prefix``:
@@ -31,6 +32,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import hashlib
+import os
+import re
 import sys
 
 import jax
@@ -100,7 +103,14 @@ def train_fingerprint(name: str):
 
 
 def isa() -> str:
-    """``", AVX-512"`` where XLA:CPU may use it (its results' last bits differ), else ``""``."""
+    """``", AVX-512"`` where XLA:CPU may use it (its results' last bits differ), else ``""``.
+
+    ``XLA_FLAGS=--xla_cpu_max_isa=AVX2`` caps what XLA compiles for; on an AVX-512 CPU it
+    reproduces the lines of one without it (checked for every env line of fingerprint.txt).
+    """
+    cap = re.search(r"--xla_cpu_max_isa=(\S+)", os.environ.get("XLA_FLAGS", ""))
+    if cap and not cap.group(1).upper().startswith("AVX512"):
+        return ""
     try:
         with open("/proc/cpuinfo") as fh:
             return ", AVX-512" if " avx512f" in fh.read() else ""

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import time
 
 import jax
 import numpy as np
@@ -18,7 +19,7 @@ from ttd3_jax import spec as sp
 from ttd3_jax.control.closed_loop import evaluate_on_tracks
 from ttd3_jax.control.closed_loop import test_tracks as make_test_tracks
 from ttd3_jax.evaluate import main as evaluate_main
-from ttd3_jax.runner import TrainingDiverged, check_finite, run
+from ttd3_jax.runner import LiveBar, TrainingDiverged, check_finite, run
 from ttd3_jax.sharding import runner_fns
 from ttd3_jax.sim.env import TrackingEnv
 from ttd3_jax.td3.config import Hyper
@@ -291,3 +292,18 @@ def test_the_budget_rounding_to_whole_epochs_is_printed(tmp_path, capsys):
     run(s, out=str(tmp_path), verbose=True, stop_after=0)
     out = capsys.readouterr().out
     assert f"budget: {s.train.transitions_run:,} of total_transitions {s.train.total_transitions:,}" in out
+
+
+def test_the_live_bar_counts_seconds_then_estimates_from_the_last_epoch(capsys):
+    bar = LiveBar(epochs=10, interval_s=0.01)
+    bar.start(1)
+    time.sleep(0.1)
+    bar.stop()
+    first = capsys.readouterr().out
+    assert "epoch 1/10  running" in first and first.endswith("\r")  # drawn, then cleared
+    assert bar.last_s == pytest.approx(0.1, abs=0.09)
+    bar.epoch = 2
+    assert bar.line(bar.last_s / 2).startswith("  epoch 2/10 [##########..........] ~ 50%")
+    assert "~ 99%" in bar.line(10 * bar.last_s)  # a slow epoch never shows done
+    bar.stop()  # stopping a bar that is not running does nothing
+    assert capsys.readouterr().out == ""

@@ -5,10 +5,12 @@ so a kill loses at most the epoch in flight and a resume continues bit for bit.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
 import sys
+import threading
 import time
 from typing import NamedTuple
 
@@ -18,8 +20,10 @@ import numpy as np
 from ttd3_jax import checkpoint as ckpt
 from ttd3_jax import report, runs
 from ttd3_jax import spec as sp
+from ttd3_jax.cache import StoredProgram, program_store
 from ttd3_jax.control.paper import PAPER_TTD3, beats_paper
 from ttd3_jax.sharding import runner_fns
+from ttd3_jax.td3.config import Hyper
 from ttd3_jax.td3.trainer import seed_keys
 
 
@@ -54,26 +58,44 @@ def check_memory(spec: sp.RunSpec, obs_size: int, action_size: int) -> int:
 
 
 class LiveBar:
-    """In-epoch progress on a terminal: vector steps done and steps/s, redrawn in place."""
+    """In-epoch progress on a terminal, redrawn in place by a host thread while the compiled
+    epoch runs: the seconds so far and, from the second epoch on, the share of the previous
+    epoch's time (an estimate: the compiled epoch reports nothing until it ends, so that its
+    program holds no host callback and can be stored, :class:`~ttd3_jax.cache.StoredProgram`)."""
 
-    def __init__(self, spec: sp.RunSpec):
-        self.spec, self.epoch, self.t0 = spec, 0, time.perf_counter()
+    def __init__(self, epochs: int, interval_s: float = 0.25):
+        self.epochs, self.interval_s, self.last_s = epochs, interval_s, None
+        self._stop, self._thread, self.epoch, self.t0 = threading.Event(), None, 0, 0.0
+
+    def line(self, elapsed_s: float) -> str:
+        """The bar ``elapsed_s`` seconds into the epoch."""
+        head = f"  epoch {self.epoch}/{self.epochs}"
+        if not self.last_s:
+            return f"{head}  running {elapsed_s:6.1f} s"
+        frac = min(elapsed_s / self.last_s, 0.99)
+        bar = "#" * int(20 * frac) + "." * (20 - int(20 * frac))
+        return f"{head} [{bar}] ~{100 * frac:3.0f}%  {elapsed_s:6.1f} s of ~{self.last_s:.1f} s"
 
     def start(self, epoch: int) -> None:
         self.epoch, self.t0 = epoch, time.perf_counter()
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._draw, daemon=True)
+        self._thread.start()
 
-    def __call__(self, done) -> None:
-        c = self.spec.train
-        done = int(np.max(np.asarray(done)))
-        frac = done / c.steps_per_epoch
-        steps = self.spec.num_seeds * c.num_envs * c.env_steps_per_step * done
-        sps = steps / max(time.perf_counter() - self.t0, 1e-9)
-        bar = "#" * int(20 * frac) + "." * (20 - int(20 * frac))
-        sys.stdout.write(f"\r  epoch {self.epoch}/{c.epochs} [{bar}] {100 * frac:5.1f}%  {sps:8.3g} steps/s ")
+    def _draw(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            sys.stdout.write("\r" + self.line(time.perf_counter() - self.t0) + " ")
+            sys.stdout.flush()
+
+    def stop(self) -> None:
+        """End the epoch's bar and clear it (call before printing anything else)."""
+        if self._thread is None:
+            return
+        self._stop.set()
+        self._thread.join()
+        self._thread, self.last_s = None, time.perf_counter() - self.t0
+        sys.stdout.write("\r" + " " * 80 + "\r")
         sys.stdout.flush()
-
-    def clear(self) -> None:
-        sys.stdout.write("\r" + " " * 72 + "\r")
 
 
 def progress_line(epoch: int, epochs: int, m: dict, ev: dict, sps: float) -> str:
@@ -130,13 +152,13 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = 
         log(f"budget: {c.transitions_run:,} of total_transitions {c.total_transitions:,} per seed "
             f"({c.warmup_steps * c.num_envs:,} warm-up, then {c.epochs} epochs x {c.steps_per_epoch} vector "
             f"steps x {c.env_steps_per_step} env steps x {c.num_envs} envs)")  # fmt: skip
-    live = LiveBar(spec) if verbose and sys.stdout.isatty() else None
+    live = LiveBar(c.epochs) if verbose and sys.stdout.isatty() else None
     stages, t = {}, time.perf_counter()
-    trainer = sp.trainer_for(spec, on_progress=live)
+    trainer = sp.trainer_for(spec)
     check_memory(spec, trainer.env.obs_size, trainer.env.action_size)
     keys, hp = seed_keys(spec.seed, spec.num_seeds), spec.hp
     # plain jit on one device; seeds (and envs) split over all visible devices otherwise
-    init_fn, epoch_fn, eval_fn, place = runner_fns(trainer, keys, hp)
+    init_fn, epoch_fn, eval_fn, place = _stored(spec, runner_fns(trainer, keys, hp))
     t = _stage(stages, "construct", t)
     if resume is None:
         run_dir = runs.new_run_dir(out, spec)
@@ -177,6 +199,20 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = 
     return summary
 
 
+def _stored(spec: sp.RunSpec, fns: tuple) -> tuple:
+    """The runner's functions with their traced programs kept beside the compilation cache
+    (:class:`~ttd3_jax.cache.StoredProgram`), so a warm launch skips tracing.  Not over
+    several devices (``fns`` as they are then)."""
+    store = program_store()
+    if store is None or jax.device_count() > 1:
+        return fns
+    init_fn, epoch_fn, eval_fn, place = fns
+    context = repr(dataclasses.replace(spec, seed=0, hp=Hyper()))  # the seed and hp values are traced
+    return (StoredProgram(init_fn, "init", context, store),
+            StoredProgram(epoch_fn, "epoch", context, store, donate_argnums=(0,)),
+            StoredProgram(eval_fn, "eval", context, store), place)  # fmt: skip
+
+
 def _program(stages: dict, name: str, fn, args: tuple, t: float):
     """Program ``name`` traced and compiled for ``args`` (the persistent compilation cache
     may answer the compile), both times recorded in ``stages``; returns it and the time now."""
@@ -203,7 +239,7 @@ def _resume(run_dir: str, init_fn, keys, hp, place, log):
             f"{os.path.join(run_dir, 'checkpoints')} holds no checkpoint, so there is nothing to resume; "
             "start a new run (its metrics.csv is left as it is)"
         )
-    start, state, skipped = ckpt.restore_newest(run_dir, jax.eval_shape(init_fn, keys, hp))
+    start, state, skipped = ckpt.restore_newest(run_dir, init_fn.eval_shape(keys, hp))
     for epoch, reason in skipped:
         log(f"skipped checkpoint {epoch}, which does not load ({reason}); it is deleted")
         ckpt.manager(run_dir).delete(epoch)
@@ -231,14 +267,18 @@ def _epochs(loop: _Loop, ts, start: int, last: int):
     run_s, ev, timings = 0.0, None, []
     for epoch in range(start + 1, last + 1):
         te = time.perf_counter()
+        steps_before = float(np.mean(np.asarray(ts.n_tr)))
         if live is not None:
             live.start(epoch)
-        steps_before = float(np.mean(np.asarray(ts.n_tr)))
-        ts, m = epoch_c(ts, spec.hp)
-        m = jax.device_get(m)
-        t_train = time.perf_counter() - te
-        check_finite(m, ts, epoch, run_dir, mngr)
-        ev = jax.device_get(eval_c(ts))
+        try:
+            ts, m = epoch_c(ts, spec.hp)
+            m = jax.device_get(m)
+            t_train = time.perf_counter() - te
+            check_finite(m, ts, epoch, run_dir, mngr)
+            ev = jax.device_get(eval_c(ts))
+        finally:
+            if live is not None:
+                live.stop()
         dt = time.perf_counter() - te
         run_s += dt
         sps = spec.num_seeds * (float(np.mean(m["env_steps"])) - steps_before) / dt
@@ -259,8 +299,6 @@ def _epochs(loop: _Loop, ts, start: int, last: int):
             ckpt.save(mngr, epoch, ts, wait=False)  # written during the next epoch
         host_s = time.perf_counter() - te - dt  # logs, selection, checkpoint
         timings.append(dict(epoch=epoch, train_s=t_train, eval_s=dt - t_train, host_s=host_s))
-        if live is not None:
-            live.clear()
         log(progress_line(epoch, spec.train.epochs, m, ev, sps), flush=True)
     if tb is not None:
         tb.close()

@@ -95,9 +95,9 @@ def env_spec(spec: RunSpec) -> envs.EnvSpec:
     return envs.brax(spec.env, b.backend, b.episode_length, b.eval_episodes)
 
 
-def trainer_for(spec: RunSpec, on_progress=None) -> Trainer:
+def trainer_for(spec: RunSpec) -> Trainer:
     """The run's :class:`~ttd3_jax.td3.trainer.Trainer` (see ``make_trainer``)."""
-    return make_trainer(spec.train, env_spec(spec), on_progress)
+    return make_trainer(spec.train, env_spec(spec))
 
 
 def buffer_bytes(spec: RunSpec, obs_size: int, action_size: int) -> int:

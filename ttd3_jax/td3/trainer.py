@@ -31,8 +31,6 @@ from ttd3_jax.td3.envs import EnvSpec
 from ttd3_jax.td3.losses import actor_loss, critic_loss
 from ttd3_jax.td3.networks import Networks, init_params, make_networks
 
-PROGRESS_TICKS = 50  # host progress callbacks per epoch (when ``on_progress`` is given)
-
 
 @struct.dataclass
 class TrainState:
@@ -61,7 +59,6 @@ class Setup(NamedTuple):
     env: EnvSpec
     nets: Networks
     adam: optax.GradientTransformation  # Adam with an injected learning rate, set from ``hp``
-    on_progress: Callable[[int], None] | None = None  # host callback, vector steps done in the epoch
 
 
 class Finished(NamedTuple):
@@ -71,10 +68,10 @@ class Finished(NamedTuple):
     count: jax.Array
 
 
-def make_setup(c: TrainConfig, env: EnvSpec, on_progress: Callable[[int], None] | None = None) -> Setup:
+def make_setup(c: TrainConfig, env: EnvSpec) -> Setup:
     adam = optax.inject_hyperparams(optax.adam)(learning_rate=0.0)
     actor_in = env.actor_obs_size if env.actor_obs_size != env.obs_size else None
-    return Setup(c, env, make_networks(env.action_size, c.hidden, c.critic_arch, actor_in), adam, on_progress)
+    return Setup(c, env, make_networks(env.action_size, c.hidden, c.critic_arch, actor_in), adam)
 
 
 def obs_stats(s: Setup, ts: TrainState) -> nrm.ObsStats | None:
@@ -300,15 +297,7 @@ def vector_step(s: Setup, ts: TrainState, hp: Hyper):
 def epoch(s: Setup, ts: TrainState, hp: Hyper):
     """``steps_per_epoch`` vector steps; returns the state and the epoch's mean metrics."""
     c = s.config
-    every = max(1, c.steps_per_epoch // PROGRESS_TICKS)
-
-    def body(t, i):
-        if s.on_progress is not None:
-            tick = lambda: jax.debug.callback(s.on_progress, i + 1)  # noqa: E731
-            jax.lax.cond((i + 1) % every == 0, tick, lambda: None)
-        return vector_step(s, t, hp)
-
-    ts, (out, fin) = jax.lax.scan(body, ts, jnp.arange(c.steps_per_epoch))
+    ts, (out, fin) = jax.lax.scan(lambda t, _: vector_step(s, t, hp), ts, None, length=c.steps_per_epoch)
     m = {k: jnp.nanmean(v) for k, v in out._asdict().items()}
     n_ep = jnp.sum(fin.count)
     m.update(
@@ -360,12 +349,11 @@ class Trainer(NamedTuple):
         return self.setup.nets
 
 
-def make_trainer(c: TrainConfig, env: EnvSpec, on_progress: Callable[[int], None] | None = None) -> Trainer:
-    """The pure training functions for config ``c`` on ``env``.  ``on_progress(steps)``, if
-    given, is called from the compiled epoch about ``PROGRESS_TICKS`` times per epoch."""
+def make_trainer(c: TrainConfig, env: EnvSpec) -> Trainer:
+    """The pure training functions for config ``c`` on ``env``."""
     if c.model_horizon > 0 and not env.differentiable:
         raise ValueError("model_horizon > 0 back-propagates through the simulator; this env is not")
-    s = make_setup(c, env, on_progress)
+    s = make_setup(c, env)
     return Trainer(
         setup=s,
         init=lambda key, hp: init(s, key, hp),
