@@ -87,6 +87,22 @@ def test_paired_test_over_seeds():
     line = mc.reading(mc.summarize(rows), rows)[0]
     assert "Paired over 3 seeds: final +20.0 (T-TD3 ahead in 2/3" in line
     assert mc.paired(rows_for("hopper", "td3", [1.0]), "hopper") is None
+    # TD3's seed 0 never reaches 80 % of TD3's final mean (120): no difference, no test
+    assert math.isnan(pr["steps80_diff"]) and math.isnan(pr["steps80_p"])
+    assert "steps to 80 % of TD3's final not reached by every seed." in line
+
+
+def test_paired_steps_to_80_percent_of_td3s_final():
+    rows = rows_for("hopper", "td3", [150.0] * 3) + rows_for("hopper", "ttd3", [300.0, 150.0, 360.0])
+    pr = mc.paired(rows, "hopper")
+    # level 120: TD3's seeds reach it at 15k; T-TD3's at 10k, 15k and 5k
+    assert pr["level"] == pytest.approx(120.0)
+    assert pr["steps80_diff"] == pytest.approx(-5000.0) and pr["steps80_wins"] == 2
+    from scipy import stats
+
+    assert pr["steps80_p"] == pytest.approx(stats.ttest_rel([10000, 15000, 5000], [15000] * 3).pvalue)
+    line = mc.reading(mc.summarize(rows), rows)[0]
+    assert "steps to 80 % of TD3's final -5000 (T-TD3 sooner in 2/3" in line
 
 
 def fake_run(out, task, algo, argv):
@@ -132,12 +148,32 @@ def test_readme_states_each_runs_budget_and_flags_reduced_runs(tmp_path):
         assert len(list(csv.DictReader(fh))) == 2 * 3 * (14 + 2)  # algos x seeds x evaluations
 
 
+def test_a_run_short_only_of_the_protocols_steps_says_its_share(tmp_path):
+    out = str(tmp_path)
+    argv = ["--steps", "300000", "--warmup", "25000", "--eval-every", "5000", "--out", out]
+    argv += ["--tasks", "hopper"]
+    fake_run(out, "hopper", "td3", argv)
+    fake_run(out, "hopper", "ttd3", argv[:3] + ["20000"] + argv[4:])  # a 20k warm-up is reduced
+    b = {r["algo"]: r for r in mc.budgets(out)}
+    assert mc.protocol_settings(b["td3"]) and not b["td3"]["protocol"]
+    assert mc.protocol_label(b["td3"]) == "**no: 30 % of its steps**"
+    assert mc.protocol_label(b["ttd3"]) == "**no: reduced**"
+    assert mc.protocol_label({**b["td3"], "steps": 1_000_000, "protocol": True}) == "yes"
+    text = mc.budget_markdown(mc.budgets(out))
+    row = "| hopper | TD3 | 300000 | 3 | 1 x 1 | 25000 | 5000 (10) | mjx | yes | **no: 30 % of its steps** |"
+    assert row in text
+
+
 def test_committed_runs_load_with_their_budgets():
-    """results/mujoco/runs/*/*/config.json are run specs (ttd3_jax.spec.to_dict) that load."""
+    """results/mujoco/runs/*/*/config.json are run specs (ttd3_jax.spec.to_dict) that load,
+    with the budgets docs/results.md states: steps, warm-up, evaluation interval."""
     out = os.path.join(HERE, "..", "results", "mujoco")
     b = {(r["task"], r["algo"]): r for r in mc.budgets(out)}
     assert len(b) == 8 and all(r["finished"] and not r["protocol"] for r in b.values())
-    assert b["hopper", "ttd3"]["steps"] == 40000 and b["ant", "td3"]["steps"] == 15000
-    assert {(r["seeds"], r["eval_every"], r["eval_episodes"], r["backend"]) for r in b.values()} == {
-        (3, 2500, 10, "mjx")
-    }
+    budget = {"ant": (15000, 5000, 2500), "walker2d": (15000, 5000, 2500), "hopper": (40000, 5000, 2500),
+              "inverted_double_pendulum": (300000, 25000, 5000)}  # fmt: skip
+    for (task, _), r in b.items():
+        assert (r["steps"], r["warmup"], r["eval_every"]) == budget[task], task
+        assert (r["seeds"], r["num_envs"], r["updates_per_step"], r["eval_episodes"], r["backend"]) == (
+            3, 1, 1, 10, "mjx")  # fmt: skip
+    assert mc.protocol_label(b["inverted_double_pendulum", "td3"]) == "**no: 30 % of its steps**"
