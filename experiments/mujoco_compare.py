@@ -414,11 +414,9 @@ def write_readme(a: argparse.Namespace, summary: list[dict], wall_s: float, rows
     """README.md of ``a.out``: each task's budget (read from its run, so invocations with
     different budgets into one folder are described correctly), the device, the last
     command, the summary and a generated reading."""
-    import jax
 
     rows = budgets(a.out)
     reduced = not rows or not all(b["protocol"] for b in rows)
-    dev = jax.devices()[0]
     readme = os.path.join(a.out, "README.md")
     log = os.path.join(a.out, "commands.txt")
     if not a.report_only:
@@ -439,7 +437,7 @@ def write_readme(a: argparse.Namespace, summary: list[dict], wall_s: float, rows
         )
         fh.write(budget_markdown(rows) + "\n")
         note = f" ({a.device_note})" if a.device_note else ""
-        fh.write(f"- device: {dev.platform} {dev.device_kind}{note}\n")
+        fh.write(f"- device: {jax_device()}{note}\n")
         fh.write("- commands (each trains the tasks it names; finished tasks are skipped):\n")
         for line in commands:
             date, _, cmd = line.partition("  ")
@@ -456,8 +454,8 @@ def write_readme(a: argparse.Namespace, summary: list[dict], wall_s: float, rows
 def jax_device() -> str:
     import jax
 
-    d = jax.devices()[0]
-    return f"{d.platform} {d.device_kind}"
+    d = jax.devices()[0]  # "cpu", or e.g. "gpu NVIDIA H100 80GB HBM3"
+    return d.platform if d.device_kind == d.platform else f"{d.platform} {d.device_kind}"
 
 
 def report(a: argparse.Namespace, wall_s: float) -> list[dict]:

@@ -142,7 +142,7 @@ def test_readme_states_each_runs_budget_and_flags_reduced_runs(tmp_path):
     text = open(os.path.join(out, "README.md")).read()
     assert "**Reduced runs, not the paper's protocol.**" in text
     assert "| hopper | TD3 | 40000 | 3 | 1 x 1 | 5000 | 2500 (10) | mjx | yes | **no: reduced** |" in text
-    assert "| ant | T-TD3 | 15000 |" in text and "test machine" in text
+    assert "| ant | T-TD3 | 15000 |" in text and "- device: cpu (test machine)" in text
     assert os.path.getsize(os.path.join(out, "curves.png")) > 10_000
     with open(os.path.join(out, "evals.csv")) as fh:
         assert len(list(csv.DictReader(fh))) == 2 * 3 * (14 + 2)  # algos x seeds x evaluations
