@@ -188,6 +188,11 @@ def auc(steps: np.ndarray, mean: np.ndarray) -> float:
     return float(area / (steps[-1] - steps[0]))
 
 
+def level_80(td3_final: float) -> float:
+    """80 % of TD3's final mean return, the level "steps to" is read at (nan unless > 0)."""
+    return 0.8 * td3_final if td3_final > 0 else math.nan
+
+
 def paired(rows: list[dict], task: str) -> dict | None:
     """T-TD3 against TD3, seed by seed (seed i of both starts from the same key), on the
     evaluations both have: final return, AUC and the steps each seed's curve takes to reach
@@ -202,8 +207,7 @@ def paired(rows: list[dict], task: str) -> dict | None:
     if n == 0 or common.size == 0:
         return None
     rt, rd = rt[:n, np.isin(st, common)], rd[:n, np.isin(sd, common)]
-    td3_final = float(np.mean(rd[:, -1]))
-    level = 0.8 * td3_final if td3_final > 0 else math.nan  # as in summarize
+    level = level_80(float(np.mean(rd[:, -1])))
     res = {"seeds": n, "step": int(common[-1]), "level": level}
     for name, a, b, sign in (
         ("final", rt[:, -1], rd[:, -1], 1),
@@ -227,7 +231,7 @@ def summarize(rows: list[dict]) -> list[dict]:
         curves = {algo: curve(rows, task, algo) for algo in ALGOS}
         td3_steps, td3_ret = curves["td3"]
         td3_final = float(np.mean(td3_ret[:, -1])) if td3_ret.size else math.nan
-        level = 0.8 * td3_final if td3_final > 0 else math.nan
+        level = level_80(td3_final)
         for algo in ALGOS:
             steps, ret = curves[algo]
             if not steps.size:
@@ -414,7 +418,6 @@ def write_readme(a: argparse.Namespace, summary: list[dict], wall_s: float, rows
     """README.md of ``a.out``: each task's budget (read from its run, so invocations with
     different budgets into one folder are described correctly), the device, the last
     command, the summary and a generated reading."""
-
     rows = budgets(a.out)
     reduced = not rows or not all(b["protocol"] for b in rows)
     readme = os.path.join(a.out, "README.md")
