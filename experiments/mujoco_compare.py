@@ -141,7 +141,7 @@ def collect_evals(out: str) -> list[dict]:
 
 def write_evals(rows: list[dict], out: str) -> str:
     path = os.path.join(out, "evals.csv")
-    tmp = path + ".tmp"
+    tmp = f"{path}.{os.getpid()}.tmp"  # one per process: two workers once raced on one name
     with open(tmp, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=["task", "algo", "seed", "step", "eval_return"])
         w.writeheader()

@@ -169,9 +169,7 @@ def test_committed_runs_load_with_their_budgets():
     with the budgets docs/results.md states: steps, warm-up, evaluation interval."""
     out = os.path.join(HERE, "..", "results", "mujoco")
     b = {(r["task"], r["algo"]): r for r in mc.budgets(out)}
-    assert len(b) == 8 and not any(r["protocol"] for r in b.values())
-    # hopper's 300k runs are unfinished (docs/results.md says at which step)
-    assert all(r["finished"] == (task != "hopper") for (task, _), r in b.items())
+    assert len(b) == 8 and all(r["finished"] and not r["protocol"] for r in b.values())
     budget = {"ant": (15000, 5000, 2500), "walker2d": (15000, 5000, 2500), "hopper": (300000, 25000, 5000),
               "inverted_double_pendulum": (300000, 25000, 5000)}  # fmt: skip
     for (task, _), r in b.items():
