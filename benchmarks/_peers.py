@@ -1,4 +1,5 @@
-"""Shared plumbing of the peer benchmarks (``peer_*.py``): run a peer in its own interpreter.
+"""Shared plumbing of the benchmarks: every record's header and goal lines, and, for the peer
+benchmarks (``peer_*.py``), running a peer in its own interpreter.
 
 A peer framework is often not installable next to this project (crazyflow excludes the
 jax this project pins), so each peer runs in a *worker*: the benchmark script itself,
@@ -224,10 +225,11 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
-def machine_record(argv: list[str] | None) -> dict:
-    """Where and when: the fields every peer record starts with."""
+def machine_record(argv: list[str] | None, *, with_jax: bool = True) -> dict:
+    """Where and when: the fields every benchmark record starts with (date, command, machine,
+    CPU model, cores, Python; jax's device kind and version unless ``with_jax`` is False)."""
     cmd = " ".join(["python", os.path.relpath(sys.argv[0], REPO), *(sys.argv[1:] if argv is None else argv)])
-    return dict(
+    rec = dict(
         date=datetime.datetime.now().isoformat(timespec="seconds"),
         command=cmd,
         machine=platform.machine(),
@@ -235,6 +237,17 @@ def machine_record(argv: list[str] | None) -> dict:
         cpus=os.cpu_count(),
         python=platform.python_version(),
     )
+    if with_jax:
+        import jax
+
+        rec.update(device=jax.devices()[0].device_kind, jax=jax.__version__)
+    return rec
+
+
+def print_goals(goals: dict, fmt: str = "{:.3g}", label: str = "") -> None:
+    """One line per goal: ``goal NAME LABEL: VALUE -> met|MISSED`` (``fmt`` formats VALUE)."""
+    for k, v in goals.items():
+        print(f"goal {k}{label}: {fmt.format(v['value'])} -> {'met' if v['met'] else 'MISSED'}")
 
 
 def append_record(path: str, record: dict) -> None:
@@ -246,8 +259,7 @@ def append_record(path: str, record: dict) -> None:
 
 
 def print_machine(record: dict):
-    """Print the header line of a peer benchmark's table (our device, cores, jax, CPU);
-    returns the device."""
+    """Print the header line of a peer benchmark's table (our device, cores, jax, CPU)."""
     import jax
 
     dev = jax.devices()[0]
@@ -255,4 +267,3 @@ def print_machine(record: dict):
         f"device={dev.platform} ({dev.device_kind}) cpus={os.cpu_count()} jax={jax.__version__} "
         f"{record['cpu']}"
     )
-    return dev

@@ -62,7 +62,7 @@ def main(argv=None) -> dict:
             written.append(time.perf_counter() - t)
     med = {k: statistics.median(v) for k, v in blocked.items()}
     record = _peers.machine_record(argv)
-    record.update(jax=jax.__version__, device=jax.devices()[0].device_kind, state_mb=mbytes, saves=n,
+    record.update(state_mb=mbytes, saves=n,
                   quick=args.quick, blocked_s=blocked, background_written_s=written)  # fmt: skip
     print(f"fast train state: {mbytes:.1f} MB; {n} saves each way, alternating ({record['cpu']}, "
           f"{record['cpus']} cpus)")  # fmt: skip

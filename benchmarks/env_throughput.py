@@ -45,9 +45,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import os
-import platform
 import time
 
 import _peers
@@ -286,14 +284,9 @@ def main(argv=None):
         goals["env_nominal_vs_rk4_time_le_2"] = dict(value=ratio, met=ratio <= 2.0)
         sps = n / best["env_nominal"]
         goals["env_nominal_steps_per_s_ge_1e7"] = dict(value=sps, met=sps >= 1e7)
-    for k, v in goals.items():
-        print(f"goal {k}: {v['value']:.3g} -> {'met' if v['met'] else 'MISSED'}")
-    record = dict(
-        date=datetime.datetime.now().isoformat(timespec="seconds"),
-        machine=platform.machine(),
-        cpus=os.cpu_count(),
-        device=dev.device_kind,
-        jax=jax.__version__,
+    _peers.print_goals(goals)
+    record = _peers.machine_record(argv)
+    record.update(
         envs=args.envs,
         steps=args.steps,
         quick=args.quick,

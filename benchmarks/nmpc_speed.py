@@ -21,10 +21,8 @@ a JSON record to ``--out``.
 from __future__ import annotations
 
 import argparse
-import datetime
 import importlib.util
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -126,14 +124,9 @@ def main(argv=None):
     if steps == 3000:  # issue 21 item 3: the 3000-step compiled loop within 1 s
         worst = max(min(runs[("default", t)]) for t in tr.TEST_TRACKS)
         goals["nmpc_loop_3000_le_1s"] = dict(value=worst, met=worst <= 1.0)
-    for k, v in goals.items():
-        print(f"goal {k}: {v['value']:.3f} s -> {'met' if v['met'] else 'MISSED'}")
-    record = dict(
-        date=datetime.datetime.now().isoformat(timespec="seconds"),
-        machine=platform.machine(),
-        cpus=os.cpu_count(),
-        device=dev.device_kind,
-        jax=jax.__version__,
+    _peers.print_goals(goals, "{:.3f} s")
+    record = _peers.machine_record(argv)
+    record.update(
         steps=steps,
         repeats=repeats,
         quick=args.quick,

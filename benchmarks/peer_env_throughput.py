@@ -195,8 +195,6 @@ def main(argv=None):
         args.repeats = 1
     sizes = QUICK_SIZES if args.quick else SIZES
 
-    import jax
-
     record = _peers.machine_record(argv)
     local = _peers.Local(BUILDERS)
     worker, cf_versions = None, {}
@@ -256,7 +254,7 @@ def main(argv=None):
         if worker:
             worker.close()
 
-    dev = _peers.print_machine(record)
+    _peers.print_machine(record)
     print(
         f"{'envs':>6} {'case':<15} {'compile s':>9} {'run s':>8} {'env-steps/s':>12} {'x rk4 time':>10} "
         f"{'ours/cf':>8}"
@@ -276,11 +274,8 @@ def main(argv=None):
                 goals["env_vs_crazyflow_ge_50x"] = dict(
                     value=r["ours_vs_crazyflow"], met=r["ours_vs_crazyflow"] >= 50
                 )
-    for k, v in goals.items():
-        print(f"goal {k}: {v['value']:.2f} -> {'met' if v['met'] else 'MISSED'}")
+    _peers.print_goals(goals, "{:.2f}")
     record.update(
-        device=dev.device_kind,
-        jax=jax.__version__,
         versions=_peers.versions(["jax", "jaxlib", "ttd3_jax"]),
         crazyflow_worker=cf_versions or None,
         quick=args.quick,

@@ -402,8 +402,6 @@ def main(argv=None):
     if args.quick:
         args.repeats = 1
 
-    import jax
-
     record = _peers.machine_record(argv)
     local = _peers.Local(BUILDERS)
     workers, peer_versions = {}, {}
@@ -457,7 +455,7 @@ def main(argv=None):
             o["updates_per_s"] / r["updates_per_s"] if o and r["framework"] != "ours" else None
         )
 
-    dev = _peers.print_machine(record)
+    _peers.print_machine(record)
     print(
         f"{'group':<15} {'framework':<9} {'envs':>4} {'UTD':>3} {'hidden':>7} {'setup s':>7} "
         f"{'compile s':>9} {'run s':>6} {'env-steps/s':>11} {'updates/s':>9} {'ours/this':>9}"
@@ -477,11 +475,8 @@ def main(argv=None):
             goals[f"vs_{r['framework']}_ge_{target}x"] = dict(
                 value=r["ours_vs_this"], met=r["ours_vs_this"] >= target
             )
-    for k, v in goals.items():
-        print(f"goal {k} (pendulum, 256-256): {v['value']:.2f} -> {'met' if v['met'] else 'MISSED'}")
+    _peers.print_goals(goals, "{:.2f}", " (pendulum, 256-256)")
     record.update(
-        device=dev.device_kind,
-        jax=jax.__version__,
         versions=_peers.versions(["jax", "jaxlib", "flax", "optax", "ttd3_jax"]),
         peers=peer_versions,
         quick=args.quick,

@@ -24,16 +24,16 @@ within 10 s.  Prints the tables and appends a record to
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import re
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
+
+import _peers
 
 from ttd3_jax.control.paper import PAPER_TTD3
 
@@ -143,8 +143,7 @@ def main(argv=None) -> int:
     def f(x, spec="{:.0f}"):
         return "never" if x is None else spec.format(x)
 
-    machine = platform.processor() or platform.machine()
-    print(f"machine: {machine}, {os.cpu_count()} cpus; paper T-TD3 {PAPER}")
+    print(f"machine: {_peers.cpu_model()}, {os.cpu_count()} cpus; paper T-TD3 {PAPER}")
     print(
         f"{'seed':>4} {'cache':>5} {'beats paper at s':>16} {'first epoch s':>13} {'total s':>7} "
         f"{'best Spiral (at s)':>19} {'best LOS (at s)':>16} {'final Spiral / LOS':>19}"
@@ -178,17 +177,9 @@ def main(argv=None) -> int:
         + f" (goal: <= {GOAL_WARM_S:.0f} s)"
     )
     if args.out:
-        rec = dict(
-            date=datetime.datetime.now().isoformat(timespec="seconds"),
-            machine=platform.processor() or platform.machine(),
-            cpus=os.cpu_count(),
-            quick=args.quick,
-            rows=rows,
-        )
-        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-        with open(args.out, "a") as fh:
-            fh.write(json.dumps(rec) + "\n")
-        print(f"appended to {args.out}")
+        rec = _peers.machine_record(argv, with_jax=False)  # the runs are subprocesses
+        rec.update(quick=args.quick, rows=rows)
+        _peers.append_record(args.out, rec)
     return 0
 
 

@@ -31,9 +31,7 @@ Cases (quadrotor, ``fast_dpg`` preset, the TD3 actor update through the critic, 
 from __future__ import annotations
 
 import argparse
-import datetime
 import os
-import platform
 import time
 
 import _peers
@@ -169,12 +167,8 @@ def main(argv=None):
             f"{s.num_seeds:>5} {comp:>9.1f} {best[name]:>7.2f} {row['transitions_per_s']:>9.3g} "
             f"{row['updates_per_s']:>8.3g} {row['updates_per_s_vs_fast']:>6.2f} {row['samples_per_s']:>9.3g}"
         )
-    record = dict(
-        date=datetime.datetime.now().isoformat(timespec="seconds"),
-        machine=platform.machine(),
-        cpus=os.cpu_count(),
-        device=dev.device_kind,
-        jax=jax.__version__,
+    record = _peers.machine_record(argv)
+    record.update(
         quick=args.quick,
         large=args.large,
         rows=rows,
