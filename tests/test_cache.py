@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
+import pickle
 
 import jax
 import numpy as np
@@ -85,18 +86,89 @@ def test_another_context_or_argument_shape_is_another_program(tmp_path):
     assert init_s.path((keys, spec.hp)) == programs(spec, str(tmp_path))[2][0].path((keys, spec.hp))
 
 
-def test_a_stored_file_that_does_not_load_is_traced_again(tmp_path):
+def _corrupt(path: str, how: str) -> None:
+    with open(path, "rb") as fh:
+        data = bytearray(fh.read())
+    if how == "torn":
+        data = data[: len(data) // 2]
+    elif how == "flipped":  # one byte of the program, past the header
+        data[-100] ^= 0xFF
+    elif how == "foreign":  # what format 1 wrote: a pickle
+        data = bytearray(pickle.dumps({"exported": b"", "out_tree": None}))
+    with open(path, "wb") as fh:
+        fh.write(bytes(data))
+
+
+@pytest.mark.parametrize("how", ["torn", "flipped", "foreign"])
+def test_a_stored_file_that_does_not_load_is_traced_again(tmp_path, how):
     spec = tiny(model_horizon=2)
     keys, (init_fn, _, _), (init_s, _, _), counted = programs(spec, str(tmp_path))
     want = digest(init_fn(keys, spec.hp))
+    init_s.lower(keys, spec.hp)  # traced and stored
     path = init_s.path((keys, spec.hp))
-    os.makedirs(tmp_path, exist_ok=True)
-    with open(path, "wb") as fh:
-        fh.write(b"torn")
+    size = os.path.getsize(path)
+    _corrupt(path, how)
+    keys, _, (init_s, _, _), counted = programs(spec, str(tmp_path))  # a new launch
     with pytest.warns(UserWarning, match="does not load.*tracing it again"):
         got = init_s.lower(keys, spec.hp).compile()(keys, spec.hp)
     assert digest(got) == want and counted[0].calls == 1
-    assert os.path.getsize(path) > 100  # replaced by the traced program
+    assert os.path.getsize(path) == size  # replaced by the traced program
+
+
+def test_a_program_with_a_host_callback_runs_as_plain_jit(tmp_path, capfd):
+    """``jax.debug.print`` in a stored function: not stored, a one-line note, and it runs."""
+
+    def noisy(x):
+        jax.debug.print("sum {s}", s=x.sum())
+        return {"y": x * 2}
+
+    fn = Counting(noisy)
+    stored = StoredProgram(fn, "noisy", "ctx", str(tmp_path), donate_argnums=(0,))
+    x = jax.numpy.arange(3.0)
+    out = stored.lower(x).compile()(x)
+    jax.effects_barrier()
+    err = capfd.readouterr()
+    assert "sum 3.0" in err.out and err.err.count("note: the noisy program cannot be stored") == 1
+    assert np.array_equal(out["y"], [0.0, 2.0, 4.0])
+    assert jax.tree.structure(stored.eval_shape(jax.numpy.arange(3.0))) == jax.tree.structure(out)
+    assert os.listdir(tmp_path) == []
+
+
+def _track_csv(path, amplitude: float) -> None:
+    t = np.arange(0, 3.01, 0.05)
+    rows = [f"{a:.2f},{amplitude * np.sin(a):.4f},{amplitude * np.cos(a) - amplitude:.4f},{0.1 * a:.4f}"
+            for a in t]  # fmt: skip
+    with open(path, "w") as fh:
+        fh.write("t,x,y,z\n" + "\n".join(rows) + "\n")
+
+
+def test_a_training_csv_edited_in_place_is_traced_again_and_trains_on_its_new_contents(tmp_path, monkeypatch):
+    """The issue's sequence: a run on a training-track CSV, the CSV edited in place (same
+    length), the same run again: it traces again and equals plain jit on the new track."""
+    monkeypatch.setattr(runner, "program_store", lambda: str(tmp_path / "store"))
+    csv = tmp_path / "track.csv"
+    _track_csv(csv, 1.0)
+    spec = tiny()
+    spec = dataclasses.replace(spec, task=dataclasses.replace(spec.task, train_tracks=(str(csv),),
+                                                              train_tracks_weight=1.0))  # fmt: skip
+    compile_ = lambda f, *x: f.lower(*x).compile()  # noqa: E731
+
+    def launch(stored: bool):
+        keys = seed_keys(spec.seed, spec.num_seeds)
+        raw = runner_fns(sp.trainer_for(spec), keys, spec.hp)
+        counted = tuple(Counting(f) for f in raw[:3]) + raw[3:]
+        fns = runner._stored(spec, counted) if stored else raw
+        return train_one_epoch(keys, spec.hp, *fns[:3], compile_), [c.calls for c in counted[:3]]
+
+    first, calls = launch(stored=True)
+    assert calls == [1, 1, 1]
+    size = os.path.getsize(csv)
+    _track_csv(csv, 2.0)  # edited in place, the same length
+    assert os.path.getsize(csv) == size
+    got, calls = launch(stored=True)
+    assert calls == [1, 1, 1]  # traced again
+    want, _ = launch(stored=False)
+    assert got == want and got != first
 
 
 def test_no_store_under_key_reuse_checks_or_without_the_compilation_cache():

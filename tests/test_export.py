@@ -106,6 +106,19 @@ def test_the_sidecar_says_what_the_policy_reads_and_writes(exported):
     assert meta["source"]["run"] == os.path.basename(run_dir) and meta["source"]["epoch"] == 2
     thrust = meta["action_map"]["thrust_N"]
     assert thrust["min"] < thrust["hover"] < thrust["max"]
+    obs = meta["observation_spec"]
+    assert obs["lookahead_physics_steps"] == cfg.lookahead_k and obs["names"] == meta["observation"]
+    assert ("track" in obs["frame"]) == (cfg.obs_frame == "track") and "qw >= 0" in obs["quaternion_sign"]
+    assert "scalar first" in meta["conventions"]["attitude"] and "z up" in meta["conventions"]["world_frame"]
+    assert meta["rate_model"]["name"] == cfg.quad.rate_model
+    assert meta["evaluation_protocol"]["physics_steps"] == cfg.episode_steps
+    assert meta["action_repeat"] == cfg.action_repeat
+    assert "Threefry" in meta["test_tracks"] and "experiments/tracks/protocol" in meta["test_tracks"]
+    # the Σ‖e‖ the exported (final) policy reached: eval.json's
+    want = json.load(open(os.path.join(run_dir, "eval.json")))["final_eval"][0]
+    got = meta["expected_tracking_error"]["sum_norm_e_m"]
+    assert got["spiral_rt"] == pytest.approx(want["spiral_tracking_error"], rel=1e-6)
+    assert got["los_rt_seed00"] == pytest.approx(want["los_tracking_error"], rel=1e-6)
 
 
 def test_bad_input_is_refused_before_loading(exported, tmp_path, capsys):

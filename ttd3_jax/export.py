@@ -78,7 +78,11 @@ def main(argv: list[str] | None = None) -> int:
     obs_size = TrackingEnv(run.env_config).observation_size
     policy = pe.from_params(actor, stats, obs_size)
     meta = pe.sidecar(run_dir, run, seed, args.best, obs_size)
-    written = pe.write(args.out, policy, meta, onnx=not args.no_onnx)
+    try:
+        written = pe.write(args.out, policy, meta, onnx=not args.no_onnx)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     print(f"wrote {', '.join(written)} to {args.out} (run {meta['source']['run']}, seed {seed}, "
           f"epoch {meta['source']['epoch']}, {meta['control_hz']:g} Hz)")  # fmt: skip
     return 0

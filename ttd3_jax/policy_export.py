@@ -92,8 +92,20 @@ def onnx_model(p: Policy, name: str = "ttd3_policy"):
     return model
 
 
+def c_float(v: float) -> str:
+    """``v`` as a C float literal that reads back to the same float32 (``0.0f``, ``1.0f``,
+    ``-1.5e-45f``, ``1e+38f``); ``%g`` alone writes ``0f``, which is no C literal."""
+    s = f"{float(np.float32(v)):.9g}"
+    return (s if any(ch in s for ch in ".e") else s + ".0") + "f"
+
+
 def _c_array(name: str, x: np.ndarray) -> str:
-    values = ", ".join(f"{v:.9g}f" for v in np.asarray(x, np.float32).ravel())
+    x = np.asarray(x, np.float32)
+    if not np.all(np.isfinite(x)):
+        bad = x.ravel()[~np.isfinite(x.ravel())][0]
+        raise ValueError(f"the policy's {name} holds non-finite values ({bad}); a C header needs finite "
+                         "weights: export an earlier --epoch or --best")  # fmt: skip
+    values = ", ".join(c_float(v) for v in x.ravel())
     return f"static const float {name}[{x.size}] = {{{values}}};"
 
 
@@ -154,32 +166,103 @@ def action_map(cfg: EnvConfig) -> dict:
                                       rule="a1..a3 -> min + (a + 1) / 2 (max - min)"))  # fmt: skip
 
 
+RATE_MODEL_MEANING = {
+    "instant": "the commanded body rates are the vehicle's body rates at once (no rate dynamics); "
+    "the vehicle's tau_rate, inertia, k_rate and torque_max are not used",
+    "first_order": "body rates follow the command as a first-order lag with time constant tau_rate; "
+    "inertia, k_rate and torque_max are not used",
+    "torque": "a rate loop, torque = J k_rate (w_cmd - w) + w x Jw clipped to torque_max, drives "
+    "the body rates through the diagonal inertia J; tau_rate is not used",
+}
+CONVENTIONS = dict(
+    world_frame="right-handed, z up; gravity along -z",
+    position="p (m), world frame",
+    velocity="v (m/s), world frame",
+    attitude="unit quaternion q = (qw, qx, qy, qz), scalar first, Hamilton convention, rotating "
+    "body-frame vectors into the world frame",
+    body_rates="omega (rad/s), body frame; thrust along the body z axis",
+)
+PROTOCOL = dict(
+    start="at rest (v = 0, omega = 0) on the track's first point p_d(0), level (q = (1, 0, 0, 0))",
+    physics_steps=3000,
+    physics_dt_s=1e-3,
+    integrator="RK4 at the physics step; q renormalised after each step",
+    action_hold="each action is held for action_repeat physics steps (the control period)",
+    tracking_error="sum over physics steps k = 1 ... 3000 of ||p(k) - p_d(k)|| (m), never terminated early",
+    crash="||p(k) - p_d(k)|| > 1 m at any physics step",
+    disturbances="none: no wind, no observation noise",
+)
+TEST_TRACKS = ("experiments/tracks/protocol/ in the ttd3_jax repository: spiral_rt.csv, los_rt_seed00.csv "
+               "(the paper's LOS-RT) ... los_rt_seed20.csv, validation_00.csv ... validation_09.csv; t,x,y,z "
+               "at every physics step. LOS-RT and the validation tracks are drawn with JAX's Threefry PRNG: "
+               "outside JAX only these files rebuild them")  # fmt: skip
+
+
+def observation_spec(cfg: EnvConfig, obs_size: int) -> dict:
+    """What each observation entry means: frame, look-ahead, error reference, quaternion sign."""
+    track = cfg.obs_frame == "track"
+    return dict(
+        names=observation_layout(cfg, obs_size),
+        frame=(
+            "track: positions relative to p_d,k, the reference at the current physics step k (a shift "
+            "of origin only; the axes are the world's); velocity stays world-frame"
+        )
+        if track
+        else "world: positions in world coordinates",  # fmt: skip
+        p_d_k="the reference position at physics step k (time k * physics_dt_s since the start)",
+        lookahead_physics_steps=cfg.lookahead_k,
+        p_ahead=f"p_d,k+{cfg.lookahead_k}: the reference {cfg.lookahead_k * cfg.dt * 1e3:g} ms ahead",
+        error_reference=("p_err = p_d,k" if cfg.err_ref == "current" else "p_err = p_d,k+1"),
+        quaternion_sign="q observed with qw >= 0 (q and -q are one attitude)"
+        if cfg.canonical_q_obs
+        else "q as integrated (either sign)",  # fmt: skip
+        noise="none in the evaluation protocol",
+    )
+
+
+def expected_errors(run_dir: str, seed: int, epoch: int) -> dict:
+    """The Σ‖e‖ this policy reached in its run's evaluation (metrics.csv), for a deployment to
+    check itself against; empty when that epoch was not evaluated (the warm-up)."""
+    rows = [r for r in runs.read_metrics(run_dir) if int(r["epoch"]) == epoch and int(r["seed"]) == seed]
+    if not rows:
+        return {}
+    names = dict(spiral_rt="spiral_tracking_error", los_rt_seed00="los_tracking_error",
+                 validation_mean="val_tracking_error")  # fmt: skip
+    return {k: rows[-1][v] for k, v in names.items() if v in rows[-1]}
+
+
 def sidecar(run_dir: str, run: runs.LoadedRun, seed: int, best: bool, obs_size: int) -> dict:
-    """``policy.json``: what the policy reads and writes, at what rate, for which vehicle."""
+    """``policy.json``: what the policy reads and writes, at what rate, for which vehicle, and
+    every fact a re-implementation needs to fly it and reproduce its tracking error."""
     cfg = run.env_config
     epoch = run.epoch[seed] if isinstance(run.epoch, dict) else run.epoch
     return dict(observation=observation_layout(cfg, obs_size), obs_size=obs_size,
+                observation_spec=observation_spec(cfg, obs_size), conventions=CONVENTIONS,
                 action_size=4, action_map=action_map(cfg), control_hz=1 / cfg.control_dt,
-                physics_dt_s=cfg.dt, vehicle=dataclasses.asdict(cfg.quad),
+                action_repeat=cfg.action_repeat, physics_dt_s=cfg.dt, vehicle=dataclasses.asdict(cfg.quad),
+                rate_model=dict(name=cfg.quad.rate_model, meaning=RATE_MODEL_MEANING[cfg.quad.rate_model]),
+                evaluation_protocol=PROTOCOL, test_tracks=TEST_TRACKS,
+                expected_tracking_error=dict(sum_norm_e_m=expected_errors(run_dir, seed, epoch),
+                                             protocol="evaluation_protocol above, float32"),
                 source=dict(run=os.path.basename(os.path.normpath(run_dir)), seed=seed, epoch=epoch,
                             selected_on_validation=best, algo=run.spec.algo),
                 ttd3_jax_version=metadata.version("ttd3_jax"),
                 files=dict(onnx="input obs [batch, n_obs] float32 -> output action [batch, 4]",
-                           c="ttd3_policy_forward(const float *obs, float *action)"))  # fmt: skip
+                           c="ttd3_policy_forward(const float *obs, float *action); also policy_forward "
+                             "unless TTD3_NO_SHORT_NAMES is defined"))  # fmt: skip
 
 
 def write(out: str, p: Policy, meta: dict, onnx: bool = True) -> list[str]:
-    """Write ``policy.onnx`` (if ``onnx``), ``policy.h`` and ``policy.json`` into ``out``."""
-    os.makedirs(out, exist_ok=True)
-    written = []
-    if onnx:
-        model = onnx_model(p)
-        with open(os.path.join(out, "policy.onnx"), "wb") as fh:
-            fh.write(model.SerializeToString())
-        written.append("policy.onnx")
+    """Write ``policy.onnx`` (if ``onnx``), ``policy.h`` and ``policy.json`` into ``out``; all
+    are built before any is written, so a policy that cannot be exported (non-finite weights:
+    ``ValueError``) leaves ``out`` as it was."""
     src = meta["source"]
-    with open(os.path.join(out, "policy.h"), "w") as fh:
-        fh.write(c_header(p, f"run {src['run']}, seed {src['seed']}, epoch {src['epoch']}"))
-    with open(os.path.join(out, "policy.json"), "w") as fh:
-        json.dump(meta, fh, indent=2)
-    return [*written, "policy.h", "policy.json"]
+    files = {"policy.h": c_header(p, f"run {src['run']}, seed {src['seed']}, epoch {src['epoch']}").encode(),
+             "policy.json": json.dumps(meta, indent=2).encode()}  # fmt: skip
+    if onnx:
+        files = {"policy.onnx": onnx_model(p).SerializeToString(), **files}
+    os.makedirs(out, exist_ok=True)
+    for name, data in files.items():
+        with open(os.path.join(out, name), "wb") as fh:
+            fh.write(data)
+    return list(files)

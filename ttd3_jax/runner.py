@@ -201,16 +201,18 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = 
 
 def _stored(spec: sp.RunSpec, fns: tuple) -> tuple:
     """The runner's functions with their traced programs kept beside the compilation cache
-    (:class:`~ttd3_jax.cache.StoredProgram`), so a warm launch skips tracing.  Not over
-    several devices (``fns`` as they are then)."""
+    (:class:`~ttd3_jax.cache.StoredProgram`), so a warm launch skips tracing; keyed on the spec
+    without its traced values and on the contents of the files it names.  Not over several
+    devices (``fns`` as they are then)."""
     store = program_store()
     if store is None or jax.device_count() > 1:
         return fns
     init_fn, epoch_fn, eval_fn, place = fns
     context = repr(dataclasses.replace(spec, seed=0, hp=Hyper()))  # the seed and hp values are traced
-    return (StoredProgram(init_fn, "init", context, store),
-            StoredProgram(epoch_fn, "epoch", context, store, donate_argnums=(0,)),
-            StoredProgram(eval_fn, "eval", context, store), place)  # fmt: skip
+    kw = dict(context_files=spec)  # the contents of the files it names (training-track CSVs)
+    return (StoredProgram(init_fn, "init", context, store, **kw),
+            StoredProgram(epoch_fn, "epoch", context, store, donate_argnums=(0,), **kw),
+            StoredProgram(eval_fn, "eval", context, store, **kw), place)  # fmt: skip
 
 
 def _program(stages: dict, name: str, fn, args: tuple, t: float):
