@@ -170,10 +170,11 @@ def build_ours(env: str, hidden: int, steps: int, num_envs: int = 1, utd: int = 
 
     import jax
 
+    from ttd3_jax import envs
     from ttd3_jax import spec as sp
     from ttd3_jax.sim.config import make_config
-    from ttd3_jax.td3 import envs
     from ttd3_jax.td3.config import Hyper, TrainConfig
+    from ttd3_jax.td3.env_spec import EnvSpec
     from ttd3_jax.td3.trainer import make_trainer
 
     if preset:  # a training preset as it is (64 envs x 16 updates, 64-64); `steps` vector steps
@@ -198,7 +199,7 @@ def build_ours(env: str, hidden: int, steps: int, num_envs: int = 1, utd: int = 
         hp = Hyper(tau=0.005, sigma=0.1, target_sigma=0.2, target_clip=0.5)
         t0 = time.perf_counter()
         if env == "pendulum":  # in place of a Brax env (never evaluated here)
-            spec = envs.EnvSpec(
+            spec = EnvSpec(
                 pendulum_v1(), 3, 1, 200, evaluate=lambda policy: {}, differentiable=False, actor_obs_size=3
             )
         else:  # the paper preset's env

@@ -39,7 +39,7 @@ from ttd3_jax.control.geometric import geometric_controller
 from ttd3_jax.control.paper import PAPER_TTD3
 from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.env import TrackingEnv
-from ttd3_jax.td3 import normalize as nrm
+from ttd3_jax.td3 import networks
 from ttd3_jax.td3.networks import make_networks
 from ttd3_jax.td3.trainer import seed_keys, with_actor
 
@@ -74,7 +74,7 @@ def test_errors(cfg, controller) -> tuple[float, float]:
 
 def clone_controller(nets, params, stats):
     """The cloned actor as a controller (raw observations, normalised by ``stats``)."""
-    return policy_controller(lambda obs: nets.actor.apply(params, nrm.apply(stats, obs)))
+    return policy_controller(lambda obs: nets.actor.apply(params, networks.normalize(stats, obs)))
 
 
 def main(argv=None) -> int:
@@ -107,8 +107,8 @@ def main(argv=None) -> int:
     cfg = make_config("practical", hover_centered_thrust=True, wind_sigma=0.0)
     key_data, key_init, key_fit = jax.random.split(jax.random.PRNGKey(args.seed), 3)
     obs, act = collect(TrackingEnv(cfg), key_data, args.envs, args.action_noise)
-    stats = nrm.update(nrm.init(obs.shape[-1]), obs)
-    x = nrm.apply(stats, obs)
+    stats = networks.update_obs_stats(networks.init_obs_stats(obs.shape[-1]), obs)
+    x = networks.normalize(stats, obs)
     nets = make_networks(4, tuple(args.hidden))
     params = nets.actor.init(key_init, x[:1])
     opt = optax.adam(optax.cosine_decay_schedule(args.lr, args.rounds * args.steps_per_round))
@@ -152,7 +152,7 @@ def then_ttd3(actor, stats, hidden, frozen: int, full: int, quick: bool, t0: flo
     t = sp.trainer_for(s)
     ts = jax.jit(t.init)(seed_keys(s.seed, s.num_seeds)[0], s.hp)
     big = 1e12  # a count this large freezes the running statistics
-    frozen_stats = nrm.ObsStats(count=jnp.asarray(big), mean=stats.mean, m2=stats.m2 / stats.count * big)
+    frozen_stats = networks.ObsStats(count=jnp.asarray(big), mean=stats.mean, m2=stats.m2 / stats.count * big)
     ts = with_actor(t.setup, ts, actor, s.hp).replace(obs_stats=frozen_stats)
     evaluate, epoch = jax.jit(t.evaluate), jax.jit(t.epoch)
     no_actor = s.hp.replace(lr_actor=0.0)

@@ -28,7 +28,7 @@ import numpy as np
 from ttd3_jax.control.closed_loop import closed_loop, hover_controller, metrics, policy_controller
 from ttd3_jax.runs import load_train_state
 from ttd3_jax.sim.env import TrackingEnv, hover_action
-from ttd3_jax.td3 import normalize as nrm
+from ttd3_jax.td3 import networks
 from ttd3_jax.td3.networks import twin_q
 from ttd3_jax.td3.trainer import act
 
@@ -52,7 +52,7 @@ def probe(run_dir: str, epoch: int | None = None, seed_index: int = 0, track: st
     s0 = env.reset(jax.random.PRNGKey(0))
     st = jax.tree.map(lambda x: x[seed_index], loaded.state)
     stats = st.obs_stats if spec.train.normalize_obs else None
-    obs = nrm.apply(stats, s0.obs)
+    obs = networks.normalize(stats, s0.obs)
     nets = trainer.nets
     a_pi = nets.actor.apply(st.actor, obs)
     a_hover = hover_action(cfg).astype(a_pi.dtype)

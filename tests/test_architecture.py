@@ -1,10 +1,14 @@
 """The package's shape (docs/architecture.md): layers that import only downward, no import
-inside a function, and modules and functions small enough to read."""
+inside a function, modules and functions small enough to read, a trainer that knows nothing
+of quadrotors, one choice of actor update, and a walk of one transition that is true."""
 
 from __future__ import annotations
 
 import ast
 import pathlib
+import re
+import subprocess
+import sys
 
 PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "ttd3_jax"
 # each module's layer: a module may import only modules of its own or a lower layer
@@ -86,3 +90,53 @@ def test_modules_and_functions_are_small():
                     long_functions.append(f"{name}.{node.name}: {length} lines")
     assert not long_modules, long_modules
     assert not long_functions, long_functions
+
+
+ROOT = PACKAGE.parent
+
+
+def test_the_trainer_knows_nothing_about_quadrotors():
+    """``ttd3_jax.td3`` imports no other part of the package, and importing the trainer loads
+    neither Brax nor MuJoCo."""
+    outside = [f"{name} imports {target}" for name, _, tree in modules() if name.startswith("ttd3_jax.td3")
+               for _, target in package_imports(tree) if not target.startswith("ttd3_jax.td3")]  # fmt: skip
+    assert not outside, outside
+    code = (
+        "import sys, ttd3_jax.td3.trainer; print(sorted(m for m in ('brax', 'mujoco') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_the_actor_update_is_chosen_once():
+    """The paper's step reads nothing of the model-based one: ``model_horizon`` appears once
+    in the trainer (the choice) and never in ``td3/dpg.py``."""
+    assert (PACKAGE / "td3" / "trainer.py").read_text().count("model_horizon") <= 2
+    assert "model_horizon" not in (PACKAGE / "td3" / "dpg.py").read_text()
+
+
+def _defined(path: pathlib.Path) -> set[str]:
+    """Every function of ``path``, methods as ``Class.method``."""
+    names = set()
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, ast.FunctionDef):
+            names.add(node.name)
+        elif isinstance(node, ast.ClassDef):
+            names |= {f"{node.name}.{f.name}" for f in node.body if isinstance(f, ast.FunctionDef)}
+    return names
+
+
+def test_the_walk_of_one_transition_in_the_docs_is_true():
+    """docs/architecture.md's table of one transition names at most 6 files, and every
+    function it names is defined in the file its row names."""
+    doc = (ROOT / "docs" / "architecture.md").read_text()
+    section = doc.split("## One transition through the code")[1].split("\n## ")[0]
+    rows = [r for r in section.splitlines() if re.match(r"\| \d+ \|", r)]
+    files, missing = set(), []
+    for row in rows:
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        path, functions = cells[1].strip("`"), re.findall(r"`([\w.]+)`", cells[2])
+        files.add(path)
+        missing += [f"{path}: {f}" for f in functions if f not in _defined(ROOT / path)]
+    assert len(rows) >= 10 and len(files) <= 6, (len(rows), sorted(files))
+    assert not missing, missing

@@ -31,7 +31,7 @@ from ttd3_jax.runner import run
 from ttd3_jax.sharding import per_seed
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.env import TrackingEnv, hover_action, yaw_of
-from ttd3_jax.td3 import normalize as nrm
+from ttd3_jax.td3 import networks
 from ttd3_jax.td3.networks import init_params, twin_q
 from ttd3_jax.td3.trainer import seed_keys
 
@@ -168,7 +168,7 @@ def test_probe_critics_reads_a_run_and_matches_a_direct_critic_call(tmp_path, ca
     trainer = loaded.trainer
     _, critic = init_params(trainer.nets, jax.random.PRNGKey(3), trainer.env.obs_size, 4)
     env = TrackingEnv(loaded.spec.task.for_eval("spiral_rt"))
-    obs = nrm.apply(
+    obs = networks.normalize(
         jax.tree.map(lambda x: x[0], loaded.state.obs_stats), env.reset(jax.random.PRNGKey(0)).obs
     )
     hover = hover_action(env.config)

@@ -14,8 +14,8 @@ from tiny import tiny
 
 from ttd3_jax import spec as sp
 from ttd3_jax.td3 import buffer as rb
+from ttd3_jax.td3 import dpg, model_based, networks
 from ttd3_jax.td3 import noise as nz
-from ttd3_jax.td3 import normalize as nrm
 from ttd3_jax.td3 import trainer as T
 from ttd3_jax.td3.config import Hyper, TrainConfig, validate_hyper
 from ttd3_jax.td3.losses import actor_loss, critic_loss
@@ -155,7 +155,7 @@ def test_twin_critics_are_one_vmapped_apply_equal_to_two_separate_ones():
     nets = make_networks(4, (16, 16))
     _, critic = init_params(nets, jax.random.PRNGKey(0), 17, 4)
     obs, act = jax.random.normal(jax.random.PRNGKey(1), (8, 17)), jnp.zeros((8, 4))
-    q = twin_q(nets, critic, obs, act)
+    q = twin_q(nets, critic, None, obs, act)
     assert q.shape == (2, 8)
     for i in range(2):
         p = jax.tree.map(lambda x, i=i: x[i], critic)
@@ -175,6 +175,16 @@ def _batch(n=32, terminated=None):
     )  # fmt: skip
 
 
+def _loss(critic, nets, actor, b, key, hp, target_std):
+    kw = dict(nets=nets, target_actor=actor, target_critic=critic, stats=None, batch=b, key=key, hp=hp)
+    return critic_loss(critic, **kw, target_std=target_std)
+
+
+def _target(nets, actor, critic, b, hp, a_next):
+    q_next = jnp.min(twin_q(nets, critic, None, b.next_obs, a_next), axis=0)
+    return b.reward + hp.gamma * (1 - b.terminated) * q_next
+
+
 def test_critic_target_is_the_td3_formula_and_stops_at_termination():
     """y = r + γ (1 − terminated) min_i Q'_i(s', clip(π'(s') + clip(σ̃ξ, −c, c), −1, 1)): with
     σ̃ = 0 the loss equals Σ_i mean (y − Q_i)² computed by hand, and a terminated row drops
@@ -182,29 +192,45 @@ def test_critic_target_is_the_td3_formula_and_stops_at_termination():
     nets = make_networks(4, (16, 16))
     actor, critic = init_params(nets, jax.random.PRNGKey(0), 17, 4)
     hp, key = Hyper(gamma=0.9), jax.random.PRNGKey(2)
-    term = (jnp.arange(32) % 2).astype(jnp.float32)
-    b = _batch(terminated=term)
-    loss, q_mean = critic_loss(critic, nets, actor, critic, b, key, hp, 0.0)
-    a_next = jnp.clip(nets.actor.apply(actor, b.next_obs), -1, 1)
-    y = b.reward + 0.9 * (1 - term) * jnp.min(twin_q(nets, critic, b.next_obs, a_next), axis=0)
-    q = twin_q(nets, critic, b.obs, b.action)
+    b = _batch(terminated=(jnp.arange(32) % 2).astype(jnp.float32))
+    loss, q_mean = _loss(critic, nets, actor, b, key, hp, 0.0)
+    y = _target(nets, actor, critic, b, hp, jnp.clip(nets.actor.apply(actor, b.next_obs), -1, 1))
+    q = twin_q(nets, critic, None, b.obs, b.action)
     assert float(loss) == pytest.approx(float(jnp.sum(jnp.mean((q - y) ** 2, -1))), rel=1e-5)
     assert float(q_mean) == pytest.approx(float(jnp.mean(q[0])), rel=1e-5)
-    a_loss = actor_loss(actor, nets, critic, b.obs)
+    a_loss = actor_loss(actor, nets=nets, critic=critic, stats=None, obs=b.obs)
     pi = nets.actor.apply(actor, b.obs)
-    assert float(a_loss) == pytest.approx(-float(jnp.mean(twin_q(nets, critic, b.obs, pi)[0])), rel=1e-5)
+    assert float(a_loss) == pytest.approx(
+        -float(jnp.mean(twin_q(nets, critic, None, b.obs, pi)[0])), rel=1e-5
+    )
+
+
+@pytest.mark.parametrize("clip", [0.05, 0.5])
+def test_target_policy_noise_is_clipped_to_plus_minus_c(clip):
+    """A huge σ̃ saturates the target noise at ±c (its sign is the Gaussian draw's): the loss
+    equals the one computed with a_next = clip(π'(s') ± c, −1, 1), and not the unclipped one."""
+    nets = make_networks(4, (16, 16))
+    actor, critic = init_params(nets, jax.random.PRNGKey(0), 17, 4)
+    hp, key, b = Hyper(gamma=0.9, target_clip=clip), jax.random.PRNGKey(2), _batch()
+    loss, _ = _loss(critic, nets, actor, b, key, hp, 1e6)
+    pi_next = nets.actor.apply(actor, b.next_obs)
+    sign = jnp.sign(jax.random.normal(key, pi_next.shape))
+    q = twin_q(nets, critic, None, b.obs, b.action)
+    for a_next, equal in ((pi_next + clip * sign, True), (pi_next + 2 * clip * sign, False)):
+        want = jnp.sum(jnp.mean((q - _target(nets, actor, critic, b, hp, jnp.clip(a_next, -1, 1))) ** 2, -1))
+        assert (float(loss) == pytest.approx(float(want), rel=1e-5)) == equal
 
 
 def test_running_obs_stats_match_numpy():
     x = np.random.default_rng(0).normal(3.0, 2.0, size=(300, 5)).astype(np.float32)
-    s = nrm.init(5)
+    s = networks.init_obs_stats(5)
     for chunk in np.split(x, [7, 100, 101, 250]):
-        s = nrm.update(s, jnp.asarray(chunk))
+        s = networks.update_obs_stats(s, jnp.asarray(chunk))
     np.testing.assert_allclose(s.mean, x.mean(0), rtol=1e-4)
-    np.testing.assert_allclose(nrm.std(s), x.std(0), rtol=1e-3)
-    z = nrm.apply(s, jnp.asarray(x))
+    np.testing.assert_allclose(networks.obs_std(s), x.std(0), rtol=1e-3)
+    z = networks.normalize(s, jnp.asarray(x))
     np.testing.assert_allclose(np.mean(np.asarray(z), 0), 0.0, atol=1e-3)
-    assert np.array_equal(nrm.apply(None, x), x)
+    assert np.array_equal(networks.normalize(None, x), x)
 
 
 # --------------------------------------------------------------------------- trainer
@@ -313,7 +339,7 @@ def test_model_actor_loss_is_the_rollout_return_and_its_gradient_matches_finite_
     hp = s.hp
     ts = ts.replace(noise=ts.noise.replace(sigma=jnp.zeros_like(ts.noise.sigma)))
     key = jax.random.PRNGKey(7)
-    value_grad = jax.jit(jax.value_and_grad(lambda a: T.model_loss(t.setup, a, ts, hp, key)[0]))
+    value_grad = jax.jit(jax.value_and_grad(lambda a: model_based.model_loss(t.setup, a, ts, hp, key)[0]))
     loss, g = value_grad(ts.actor)
     st, ret, alive = ts.env_state, jnp.zeros(s.train.num_envs), jnp.ones(s.train.num_envs)
     step = jax.jit(jax.vmap(t.env.env.step))
@@ -335,21 +361,30 @@ def test_model_actor_loss_is_the_rollout_return_and_its_gradient_matches_finite_
     assert abs(an) > 1e-4  # a real gradient, not zero
 
 
-def test_one_transition_through_the_update_functions(tiny_trainer):
-    """``update`` is the critic step, the σ update and (every d-th update) the actor step:
-    its results equal calling ``critic_update`` / ``actor_update`` by hand on the same batch."""
-    s, t, ts = tiny_trainer  # the paper's actor update
-    setup, hp, key = t.setup, s.hp, jax.random.PRNGKey(5)
-    out, (c_loss, a_loss, _) = jax.jit(lambda ts: T.update(setup, ts, hp, key, jnp.asarray(1)))(ts)
-    k_batch, k_target = jax.random.split(key)
-    batch = rb.sample(ts.buffer, k_batch, s.train.batch_size)
-    batch = batch.replace(
-        obs=nrm.apply(ts.obs_stats, batch.obs), next_obs=nrm.apply(ts.obs_stats, batch.next_obs)
-    )
-    by_hand, loss, _ = T.critic_update(setup, ts, hp, batch, k_target)
-    by_hand, a_loss_hand = T.actor_update(setup, by_hand, hp, batch)
-    assert float(c_loss) == pytest.approx(float(loss), rel=1e-6)
-    assert float(a_loss) == pytest.approx(float(a_loss_hand), rel=1e-6)
-    for x, y in zip(jax.tree.leaves(out.actor), jax.tree.leaves(by_hand.actor), strict=True):
-        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-7)
+def changed(a, b) -> bool:
+    return any(not np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
+
+
+@pytest.mark.parametrize("j, actor_moves", [(0, False), (1, True)])
+def test_the_paper_update_moves_the_actor_and_targets_every_policy_delay_updates(
+    tiny_trainer, j, actor_moves
+):
+    """With policy_delay d = 2 and G = 2, update j = 0 moves the critics and σ only; j = 1 also
+    takes the ∂Q/∂a step (a finite actor loss) and moves the target networks."""
+    s, t, ts = tiny_trainer
+    assert s.train.policy_delay == 2 and s.train.updates_per_step == 2
+    out, (c_loss, a_loss, _) = jax.jit(lambda ts: dpg.update(t.setup, ts, s.hp, jax.random.PRNGKey(5), j))(ts)
+    assert changed(out.critic, ts.critic) and np.isfinite(float(c_loss))
+    assert changed(out.actor, ts.actor) == actor_moves == changed(out.target_critic, ts.target_critic)
+    assert np.isfinite(float(a_loss)) == actor_moves
     assert int(out.n_upd) == int(ts.n_upd) + 1 and float(out.noise.sigma) < 1.0  # σ moved from u_max
+
+
+def test_the_model_based_update_never_moves_the_actor(model_trainer):
+    """The model-based path's critic updates leave the actor alone (it learns from the
+    rollout); every d-th one moves the targets."""
+    s, t, ts = model_trainer
+    for j in (0, 1):
+        out, _ = jax.jit(lambda ts, j=j: model_based.update(t.setup, ts, s.hp, jax.random.PRNGKey(5), j))(ts)
+        assert not changed(out.actor, ts.actor) and changed(out.critic, ts.critic)
+        assert changed(out.target_critic, ts.target_critic) == (j == 1)

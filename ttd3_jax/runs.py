@@ -21,7 +21,7 @@ from ttd3_jax.control.closed_loop import policy_controller
 from ttd3_jax.control.evaluator import Build, index
 from ttd3_jax.sharding import per_seed
 from ttd3_jax.sim.config import EnvConfig
-from ttd3_jax.td3 import normalize as nrm
+from ttd3_jax.td3 import networks
 from ttd3_jax.td3.trainer import Trainer, act, initial_actor, seed_keys
 
 CONFIG = "config.json"
@@ -191,7 +191,7 @@ def load_run(run_dir: str, epoch: int | None = None, best: bool = False) -> Load
             raise FileNotFoundError(
                 f"no selected policy for seed(s) {missing} in {run_dir!r} (best/best.json)"
             )
-        stats = nrm.init(setup.env.obs_size) if spec.train.normalize_obs else None
+        stats = networks.init_obs_stats(setup.env.obs_size) if spec.train.normalize_obs else None
         like = {"actor": initial_actor(setup, jax.random.PRNGKey(0)), "obs_stats": stats}
         policies = [ckpt.load_policy(run_dir, s, like) for s in seeds]
         thetas = [(s, (p["actor"], p["obs_stats"])) for s, p in zip(seeds, policies, strict=True)]

@@ -11,10 +11,11 @@ from typing import Annotated
 import dacite
 import tyro
 
+from ttd3_jax import envs
 from ttd3_jax.sim.config import EnvConfig, make_config
-from ttd3_jax.td3 import envs
 from ttd3_jax.td3.buffer import transition_bytes
 from ttd3_jax.td3.config import Hyper, TrainConfig, validate_hyper
+from ttd3_jax.td3.env_spec import EnvSpec
 from ttd3_jax.td3.trainer import Trainer, make_trainer
 
 QUADROTOR = "quadrotor"
@@ -87,7 +88,7 @@ class RunSpec:
         return self.env == QUADROTOR
 
 
-def env_spec(spec: RunSpec) -> envs.EnvSpec:
+def env_spec(spec: RunSpec) -> EnvSpec:
     """The env the run trains on, with its evaluation."""
     if spec.is_quadrotor:
         return envs.quadrotor(spec.task)

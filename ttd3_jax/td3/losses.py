@@ -1,8 +1,8 @@
 """TD3 losses (Fujimoto et al. 2018; spec §2.4).
 
 Critic: y = r + γ (1 − terminated) min_i Q'_i(s', clip(π'(s') + clip(σ̃ ξ, −c, c), −1, 1)),
-loss Σ_i mean (y − Q_i(s, a))².  Actor: −mean Q_1(s, π(s)).  ``hp`` is the trainer's
-:class:`~ttd3_jax.td3.config.Hyper`; observations arrive as the networks' input (normalised).
+loss Σ_i mean (y − Q_i(s, a))².  Actor: −mean Q_1(s, π(s)).  Observations arrive raw; the
+networks normalise them (:func:`~ttd3_jax.td3.networks.normalize`).
 """
 
 from __future__ import annotations
@@ -11,24 +11,35 @@ import jax
 import jax.numpy as jnp
 
 from ttd3_jax.td3.buffer import Transition
-from ttd3_jax.td3.networks import Networks, twin_q
+from ttd3_jax.td3.config import Hyper
+from ttd3_jax.td3.networks import Networks, ObsStats, policy, twin_q
 
 
-def critic_loss(critic, nets: Networks, target_actor, target_critic, batch: Transition, key: jax.Array,
-                hp, target_std) -> tuple[jax.Array, jax.Array]:  # fmt: skip
+def critic_loss(
+    critic,
+    *,
+    nets: Networks,
+    target_actor,
+    target_critic,
+    stats: ObsStats | None,
+    batch: Transition,
+    key: jax.Array,
+    hp: Hyper,
+    target_std,
+) -> tuple[jax.Array, jax.Array]:
     """Twin-critic TD loss and mean Q_1 over the batch; ``target_std`` is σ̃ (or the shared
-    σ under ``target_noise="shared_sigma"``)."""
+    σ under ``target_noise="shared_sigma"``), its noise clipped to ±``hp.target_clip``."""
     disc = hp.gamma * (1.0 - batch.terminated)
-    pi_next = nets.actor.apply(target_actor, batch.next_obs)
+    pi_next = policy(nets, target_actor, stats, batch.next_obs)
     eps = jnp.clip(target_std * jax.random.normal(key, pi_next.shape), -hp.target_clip, hp.target_clip)
     a_next = jnp.clip(pi_next + eps, -1.0, 1.0)
-    q_next = jnp.min(twin_q(nets, target_critic, batch.next_obs, a_next), axis=0)
+    q_next = jnp.min(twin_q(nets, target_critic, stats, batch.next_obs, a_next), axis=0)
     y = jax.lax.stop_gradient(batch.reward + disc * q_next)
-    q = twin_q(nets, critic, batch.obs, batch.action)
+    q = twin_q(nets, critic, stats, batch.obs, batch.action)
     return jnp.sum(jnp.mean((q - y) ** 2, axis=-1)), jnp.mean(q[0])
 
 
-def actor_loss(actor, nets: Networks, critic, obs: jax.Array) -> jax.Array:
+def actor_loss(actor, *, nets: Networks, critic, stats: ObsStats | None, obs: jax.Array) -> jax.Array:
     """Deterministic policy gradient objective through the first critic: −mean Q_1(s, π(s))."""
-    a = nets.actor.apply(actor, obs)
-    return -jnp.mean(twin_q(nets, jax.tree.map(lambda p: p[:1], critic), obs, a)[0])
+    a = policy(nets, actor, stats, obs)
+    return -jnp.mean(twin_q(nets, jax.tree.map(lambda p: p[:1], critic), stats, obs, a)[0])

@@ -1,8 +1,11 @@
-"""Actor and twin-critic MLPs (flax.linen), spec row A7: 256-256 ReLU, tanh actor.
+"""Actor and twin-critic MLPs (flax.linen), spec row A7: 256-256 ReLU, tanh actor, and
+their input layer, the running observation normalisation.
 
 The two critics share one module definition; their parameters are stacked on a
 leading axis of size 2 and evaluated with ``vmap``, so both critics run as one
-fused computation.
+fused computation.  Both networks read raw observations through :func:`normalize` (the
+only place it is applied): the buffer keeps raw observations and minibatches are
+normalised with the current statistics when used, as Brax's trainers do.
 """
 
 from __future__ import annotations
@@ -13,6 +16,47 @@ from typing import NamedTuple
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+from flax import struct
+
+STD_MIN = 1e-3  # floor on the std (features that barely move are not blown up)
+CLIP = 10.0  # normalised values are clipped to ±CLIP
+
+
+@struct.dataclass
+class ObsStats:
+    """Running statistics of every observation collected (Chan et al.'s parallel update)."""
+
+    count: jax.Array  # () observations seen
+    mean: jax.Array  # (n_obs,)
+    m2: jax.Array  # (n_obs,) sum of squared deviations from the mean
+
+
+def init_obs_stats(obs_size: int) -> ObsStats:
+    return ObsStats(count=jnp.zeros(()), mean=jnp.zeros(obs_size), m2=jnp.zeros(obs_size))
+
+
+def update_obs_stats(s: ObsStats, x: jax.Array) -> ObsStats:
+    """Merge a batch ``x`` (n, n_obs) into the statistics."""
+    n = x.shape[0]
+    b_mean = jnp.mean(x, axis=0)
+    b_m2 = jnp.sum((x - b_mean) ** 2, axis=0)
+    count = s.count + n
+    delta = b_mean - s.mean
+    mean = s.mean + delta * (n / count)
+    m2 = s.m2 + b_m2 + delta**2 * (s.count * n / count)
+    return ObsStats(count=count, mean=mean, m2=m2)
+
+
+def obs_std(s: ObsStats) -> jax.Array:
+    return jnp.maximum(jnp.sqrt(s.m2 / jnp.maximum(s.count, 1.0)), STD_MIN)
+
+
+def normalize(s: ObsStats | None, x: jax.Array) -> jax.Array:
+    """Normalised observations (..., n_obs); ``s=None`` (a run without normalisation) leaves
+    ``x`` unchanged."""
+    if s is None:
+        return x
+    return jnp.clip((x - s.mean) / obs_std(s), -CLIP, CLIP)
 
 
 class MLP(nn.Module):
@@ -80,7 +124,13 @@ def init_params(nets: Networks, key: jax.Array, obs_size: int, action_size: int)
     return actor, critic
 
 
-def twin_q(nets: Networks, critic_params, obs: jax.Array, action: jax.Array) -> jax.Array:
-    """Both critics' values, shape (2, ...) for obs (..., n_obs) and action (..., n_act)."""
-    x = jnp.concatenate([obs, action], -1)
+def policy(nets: Networks, actor_params, stats: ObsStats | None, obs: jax.Array) -> jax.Array:
+    """The deterministic policy π(obs) for raw observations (..., n_obs)."""
+    return nets.actor.apply(actor_params, normalize(stats, obs))
+
+
+def twin_q(nets: Networks, critic_params, stats: ObsStats | None, obs: jax.Array,
+           action: jax.Array) -> jax.Array:  # fmt: skip
+    """Both critics' values, shape (2, ...), for raw obs (..., n_obs) and action (..., n_act)."""
+    x = jnp.concatenate([normalize(stats, obs), action], -1)
     return jax.vmap(lambda p: nets.critic.apply(p, x)[..., 0])(critic_params)

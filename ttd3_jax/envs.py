@@ -1,16 +1,8 @@
-"""The envs the trainer drives, each with its own evaluation: the quadrotor tracking env
-and the Brax/MJX tasks.
-
-An :class:`EnvSpec` is all the trainer knows about an env: a single-env object with the
-Brax ``reset`` / ``step`` API whose ``info`` carries ``"truncation"`` and ``"terminated"``
-(a true terminal state, apart from the time limit), its sizes, the nominal episode length
-(T-TD3's time unit) and ``evaluate(policy)``, which scores a deterministic ``policy(obs)``.
+"""The envs the trainer drives, each as a :class:`~ttd3_jax.td3.env_spec.EnvSpec` with its
+own evaluation: the quadrotor tracking env and the Brax/MJX tasks.
 """
 
 from __future__ import annotations
-
-from collections.abc import Callable
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -18,6 +10,7 @@ import jax.numpy as jnp
 from ttd3_jax.control.closed_loop import policy_controller, test_and_validation_metrics
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.td3.env_spec import EnvSpec
 
 BRAX_ENVS = (
     "ant", "halfcheetah", "hopper", "humanoid", "humanoidstandup", "inverted_pendulum",
@@ -25,16 +18,6 @@ BRAX_ENVS = (
 )  # fmt: skip
 BACKENDS = ("mjx", "generalized", "positional", "spring")
 EVAL_KEY = 12345  # Brax evaluation episodes start from fixed keys
-
-
-class EnvSpec(NamedTuple):
-    env: object  # single-env object with Brax reset/step
-    obs_size: int
-    action_size: int
-    episode_length: int  # transitions per nominal episode (L_nom)
-    evaluate: Callable[[Callable], dict]  # policy (obs -> action) -> metrics (pure; jit it)
-    differentiable: bool  # whether gradients flow through env.step (model_horizon > 0)
-    actor_obs_size: int  # the leading observation entries the actor reads (the critics read all)
 
 
 def quadrotor(cfg: EnvConfig) -> EnvSpec:
