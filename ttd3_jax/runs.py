@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import datetime
+import itertools
 import json
 import os
 from typing import Any, NamedTuple
@@ -17,6 +18,7 @@ import numpy as np
 
 from ttd3_jax import checkpoint as ckpt
 from ttd3_jax import spec as sp
+from ttd3_jax.cli_checks import writable_dir
 from ttd3_jax.control.closed_loop import policy_controller
 from ttd3_jax.control.evaluator import Build, index
 from ttd3_jax.sharding import per_seed
@@ -29,25 +31,24 @@ CONFIG = "config.json"
 
 def check_out_dir(out: str) -> None:
     """Refuse an ``--out`` that is a file or cannot be written, before anything compiles."""
-    path = os.path.abspath(out)
-    probe = path
-    while not os.path.exists(probe):
-        probe = os.path.dirname(probe)
-    if not os.path.isdir(probe):
-        raise ValueError(f"--out {out!r}: {probe!r} is a file, not a directory")
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise ValueError(f"--out {out!r}: {probe!r} is not writable; pass --out DIR with a writable DIR")
+    writable_dir("--out", out)
 
 
 def new_run_dir(out: str, spec: sp.RunSpec) -> str:
-    """A fresh ``out/<env>-<algo>-s<seed>-<time>`` directory, with ``config.json`` in it."""
+    """A fresh ``out/<env>-<algo>-s<seed>-<time>`` directory, with ``config.json`` in it.  The
+    directory is created atomically: a name another process took first gets a suffix."""
     check_out_dir(out)
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
     base = os.path.join(out, f"{spec.env}-{spec.algo}-s{spec.seed}-{stamp}")
-    path, i = base, 1
-    while os.path.exists(path):
-        path, i = f"{base}-{i}", i + 1
-    os.makedirs(path)
+    for i in itertools.count():
+        path = base if i == 0 else f"{base}-{i}"
+        try:
+            os.makedirs(path)
+            break
+        except FileExistsError:
+            continue
+        except OSError as e:
+            raise ValueError(f"--out {out!r}: cannot create {path!r} ({e.strerror})") from None
     with open(os.path.join(path, CONFIG), "w") as fh:
         json.dump(sp.to_dict(spec), fh, indent=2)
     return path

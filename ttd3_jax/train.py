@@ -24,10 +24,12 @@ import tyro
 from ttd3_jax import runs
 from ttd3_jax import spec as sp
 from ttd3_jax.cache import use_compile_cache
+from ttd3_jax.cli_checks import bool_flags, refuse_bool_values
 from ttd3_jax.runner import TrainingDiverged, run
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim.vehicles import VEHICLE_NAMES, with_vehicle
 
+PROG = "python -m ttd3_jax.train"
 DESCRIPTION = (
     "Train T-TD3 or TD3 (preset {preset!r}; defaults below are that preset's). Also: "
     "--preset {presets}, --out DIR (default runs), --resume RUN_DIR, "
@@ -49,7 +51,10 @@ def track_files(path: str) -> tuple[str, ...]:
     else:
         raise ValueError(f"--train-tracks {path!r}: no such file or directory")
     for f in files:
-        ct.from_csv(f)  # a bad file is refused now, naming it, not when the env is built
+        try:  # a bad file is refused now, naming it, not when the env is built
+            ct.from_csv(f)
+        except ValueError as e:
+            raise ValueError(f"--train-tracks: {e}") from None
     return tuple(os.path.abspath(f) for f in files)
 
 
@@ -81,15 +86,20 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
         extra = [f"--{k.replace('_', '-')}" for k in given] + rest
         if extra:
             raise ValueError(f"--resume continues the saved run spec; remove {' '.join(extra)}")
+        known.resume, note = runs.find_run(known.resume)
+        if note:
+            print(note)
         return known, None
-    name = known.preset or "fast"
+    name = "fast" if known.preset is None else known.preset
     if name not in sp.PRESETS:
         raise ValueError(f"--preset must be one of {sp.PRESETS}, got {name!r}")
     default = preset_with_vehicle(name, known.vehicle)
+    refuse_bool_values(rest, bool_flags(sp.RunSpec))
     spec = tyro.cli(
         sp.RunSpec,
         default=default,
         args=rest,
+        prog=PROG,
         description=DESCRIPTION.format(
             preset=name, presets="|".join(sp.PRESETS), vehicles="|".join(VEHICLE_NAMES)
         ),
@@ -101,7 +111,7 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
     if known.train_tracks is not None:
         task = dataclasses.replace(spec.task, train_tracks=track_files(known.train_tracks))
         spec = dataclasses.replace(spec, task=task)
-    known.out = known.out or "runs"
+    known.out = "runs" if known.out is None else known.out
     runs.check_out_dir(known.out)
     return known, spec
 
