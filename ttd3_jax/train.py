@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import logging
 import os
 import sys
@@ -134,7 +135,35 @@ def main(argv: list[str] | None = None) -> int:
     except TrainingDiverged as e:
         print(f"error: {e}", file=sys.stderr)
         return 3
+    except Exception as e:  # a full disk or device memory: one line with what to do, no traceback
+        message = failure_message(e)
+        if message is None:
+            raise
+        print(f"error: {message}", file=sys.stderr)
+        return 1
     return 0
+
+
+def _chain(e: BaseException):
+    while e is not None:
+        yield e
+        e = e.__cause__ or e.__context__
+
+
+def failure_message(e: Exception) -> str | None:
+    """The one line for a run stopped by a full disk or by running out of memory (``None``
+    for other errors, which keep their traceback)."""
+    run_dir = getattr(e, "run_dir", None)
+    resume = f"python -m ttd3_jax.train --resume {run_dir}" if run_dir else "--resume RUN_DIR"
+    if any(
+        getattr(x, "errno", None) == errno.ENOSPC or "No space left on device" in str(x) for x in _chain(e)
+    ):
+        return f"the disk is full; free space, then continue with {resume}"
+    if "RESOURCE_EXHAUSTED" in str(e) or isinstance(e, MemoryError):
+        first = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
+        return (f"out of memory ({first}); lower buffer_size, hidden, num_envs or num_seeds and start a new "
+                f"run (or {resume} on a machine with more memory)")  # fmt: skip
+    return None
 
 
 if __name__ == "__main__":
