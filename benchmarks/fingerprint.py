@@ -15,7 +15,9 @@ then need re-running.  Run this before and after a change and compare the lines:
 project's 2-core CPU VM without AVX-512, ``fingerprint_avx512.txt`` those on one with it
 (XLA:CPU compiles for the instruction set it finds, which moves last bits; its first line
 names jax and the CPU; compare like with like: ``grep avx512f /proc/cpuinfo`` tells which).
-On an AVX-512 CPU, ``XLA_FLAGS=--xla_cpu_max_isa=AVX2`` gives the lines of fingerprint.txt.
+On an AVX-512 CPU, ``XLA_FLAGS=--xla_cpu_max_isa=AVX2`` gives fingerprint.txt's env lines but
+not its train lines (measured on a 2-core AVX2 EPYC VM on 2026-12-05; the capped lines
+written before then were wrong there).
 ``--compare FILE`` checks each line against FILE and exits 1 naming the ones that differ.
 
 Each line is ``name sha256-prefix``:
@@ -106,7 +108,7 @@ def isa() -> str:
     """``", AVX-512"`` where XLA:CPU may use it (its results' last bits differ), else ``""``.
 
     ``XLA_FLAGS=--xla_cpu_max_isa=AVX2`` caps what XLA compiles for; on an AVX-512 CPU it
-    reproduces the lines of one without it (checked for every env line of fingerprint.txt).
+    reproduces the env lines of one without it, not the train lines.
     """
     cap = re.search(r"--xla_cpu_max_isa=(\S+)", os.environ.get("XLA_FLAGS", ""))
     if cap and not cap.group(1).upper().startswith("AVX512"):

@@ -93,7 +93,8 @@ def test_config_json_round_trip_keeps_every_field():
     assert sp.from_dict(d) == s
     assert sp.from_dict({**d, "hp": {**d["hp"], "u_max": 1}}).hp.u_max == 1.0  # an int where a float goes
     assert isinstance(sp.from_dict({**d, "hp": {**d["hp"], "u_max": 1}}).hp.u_max, float)
-    assert sp.from_dict({"env": "quadrotor"}) == sp.RunSpec()  # left out: the defaults
+    with pytest.raises(ValueError, match=r"fields \"train\", \"hp\", .* are missing"):  # no defaults
+        sp.from_dict({"env": "quadrotor"})
 
 
 @pytest.mark.parametrize(

@@ -9,6 +9,7 @@ background thread while training goes on; the next save, :func:`finish` and
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -23,6 +24,9 @@ from flax import serialization
 # actuator state): they are stored as a 1-element placeholder and rebuilt on restore.
 
 
+DIGESTS = "checkpoint_digests.json"  # in the run directory: {epoch: digest of the saved state}
+
+
 def _empty(x) -> bool:
     return math.prod(x.shape) == 0
 
@@ -31,23 +35,59 @@ def _pack(tree):
     return jax.tree.map(lambda x: jnp.zeros((1,), x.dtype) if _empty(x) else x, tree)
 
 
-def manager(run_dir: str, max_to_keep: int = 2, asynchronous: bool = False) -> ocp.CheckpointManager:
+def manager(run_dir: str, max_to_keep: int = 2, asynchronous: bool = False,
+            read_only: bool = False) -> ocp.CheckpointManager:  # fmt: skip
     """The checkpoints of ``run_dir`` (``run_dir/checkpoints``), the newest ``max_to_keep``
     kept; ``asynchronous``: saves return once the state is copied, then write in the
-    background."""
+    background.  ``read_only`` (evaluation, export): nothing under ``checkpoints/`` is
+    created, cleaned or deleted (a writer's manager removes unfinished ``*-tmp`` saves when
+    it opens, which would delete the save a running trainer is writing)."""
     options = ocp.CheckpointManagerOptions(
-        max_to_keep=max_to_keep, enable_async_checkpointing=asynchronous, cleanup_tmp_directories=True
-    )
+        max_to_keep=max_to_keep, enable_async_checkpointing=asynchronous,
+        cleanup_tmp_directories=not read_only, read_only=read_only, create=not read_only,
+    )  # fmt: skip
     return ocp.CheckpointManager(os.path.abspath(os.path.join(run_dir, "checkpoints")), options=options)
 
 
+def digest(tree) -> str:
+    """A hash of a pytree of host arrays: every leaf's dtype, shape and bytes, in tree order."""
+    h = hashlib.blake2b(digest_size=16)
+    for x in jax.tree.leaves(tree):
+        a = np.ascontiguousarray(np.asarray(x))
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.view(np.uint8).reshape(-1).data if a.size else b"")
+    return h.hexdigest()
+
+
+def _digest_path(mngr: ocp.CheckpointManager) -> str:
+    return os.path.join(os.path.dirname(str(mngr.directory)), DIGESTS)
+
+
+def digests(run_dir_or_mngr) -> dict[int, str]:
+    """``{epoch: digest}`` of a run's checkpoints (empty for runs saved before digests)."""
+    path = (_digest_path(run_dir_or_mngr) if isinstance(run_dir_or_mngr, ocp.CheckpointManager)
+            else os.path.join(run_dir_or_mngr, DIGESTS))  # fmt: skip
+    try:
+        with open(path) as fh:
+            return {int(k): v for k, v in json.load(fh).items()}
+    except FileNotFoundError:
+        return {}
+    except (ValueError, AttributeError):
+        return {}  # a damaged record verifies nothing; every checkpoint then loads unverified
+
+
 def save(mngr: ocp.CheckpointManager, epoch: int, state, wait: bool = True) -> None:
-    """Save ``state`` as checkpoint ``epoch`` (epochs completed).  ``wait``: return once it
-    is on disk.  Otherwise (with an ``asynchronous`` manager) return once ``state`` is copied
-    to host memory: a private copy, so the caller may donate ``state`` right away."""
-    if not wait:
-        state = jax.tree.map(np.array, jax.device_get(state))  # np.array copies
-    mngr.save(epoch, args=ocp.args.StandardSave(_pack(state)), force=True)
+    """Save ``state`` as checkpoint ``epoch`` (epochs completed), its digest recorded first
+    (``checkpoint_digests.json``, checked on restore).  ``wait``: return once it is on disk.
+    Otherwise (with an ``asynchronous`` manager) return once ``state`` is copied to host
+    memory: a private copy, so the caller may donate ``state`` right away."""
+    host = _pack(jax.tree.map(np.array, jax.device_get(state)))  # np.array copies
+    mngr.wait_until_finished()  # the previous save (orbax waits for it here anyway)
+    kept = set(mngr.all_steps()) | {epoch}
+    record = {e: d for e, d in digests(mngr).items() if e in kept}
+    record[epoch] = digest(host)
+    _atomic_write(_digest_path(mngr), json.dumps({str(k): v for k, v in sorted(record.items())}))
+    mngr.save(epoch, args=ocp.args.StandardSave(host), force=True)
     if wait:
         mngr.wait_until_finished()
 
@@ -57,17 +97,34 @@ def finish(mngr: ocp.CheckpointManager) -> None:
     mngr.wait_until_finished()
 
 
+def close(mngr: ocp.CheckpointManager) -> None:
+    """Wait for ``mngr``'s saves, then shut its background threads down (left running, they
+    print tracebacks when the interpreter exits)."""
+    try:
+        mngr.wait_until_finished()
+    finally:
+        mngr.close()
+
+
 def latest_epoch(mngr: ocp.CheckpointManager) -> int | None:
     """The newest checkpoint on disk (a save still being written is waited for)."""
     mngr.wait_until_finished()
     return mngr.latest_step()
 
 
+class CorruptCheckpoint(ValueError):
+    """A checkpoint or selected policy whose contents differ from the digest written with it."""
+
+
 def restore(mngr: ocp.CheckpointManager, epoch: int, like):
     """Restore checkpoint ``epoch`` into the structure, shapes and dtypes of ``like``, as
-    host (numpy) arrays: the caller places them (``jax.device_put``, or onto a mesh)."""
+    host (numpy) arrays: the caller places them (``jax.device_put``, or onto a mesh).
+    Raises :class:`CorruptCheckpoint` when its contents differ from its recorded digest."""
     abstract = jax.tree.map(lambda x: np.zeros((1,) if _empty(x) else x.shape, x.dtype), like)
     out = mngr.restore(epoch, args=ocp.args.StandardRestore(abstract))
+    expected = digests(mngr).get(epoch)
+    if expected is not None and digest(out) != expected:
+        raise CorruptCheckpoint(f"its contents do not match the digest written with it ({DIGESTS})")
     return jax.tree.map(lambda o, x: np.zeros(x.shape, x.dtype) if _empty(x) else o, out, like)
 
 
@@ -82,18 +139,24 @@ def restore_newest(run_dir: str, like, epoch: int | None = None):
     ``(epoch, state, skipped)``, where ``skipped`` lists ``(epoch, reason)`` of newer
     checkpoints that did not load (corrupt or half deleted).  Raises ``FileNotFoundError``
     when none loads."""
-    mngr = manager(run_dir)
+    mngr = manager(run_dir, read_only=True)
     saved = sorted(mngr.all_steps(), reverse=True)
     if epoch is not None:
         if epoch not in saved:
             raise FileNotFoundError(f"no checkpoint {epoch} in {mngr.directory}; saved: {sorted(saved)}")
         saved = [epoch]
+    mngr.close()
     skipped = []
     for e in saved:
-        try:  # a fresh manager each time: orbax's is not usable after a failed restore
-            return e, restore(manager(run_dir), e, like), skipped
+        m = manager(
+            run_dir, read_only=True
+        )  # a fresh manager each time: orbax's is not usable after a failure
+        try:
+            return e, restore(m, e, like), skipped
         except Exception as err:  # orbax raises many kinds (ValueError, OSError, KeyError, ...)
             skipped.append((e, _reason(err)))
+        finally:
+            m.close()
     why = "; ".join(f"epoch {e}: {r}" for e, r in skipped) or "none saved"
     raise FileNotFoundError(f"no checkpoint in {mngr.directory} loads ({why})")
 
@@ -110,6 +173,10 @@ def _atomic_write(path: str, data: bytes | str) -> None:
     with open(tmp, "wb" if isinstance(data, bytes) else "w") as fh:
         fh.write(data)
     os.replace(tmp, path)
+
+
+def _bytes_digest(data: bytes) -> str:
+    return hashlib.blake2b(data, digest_size=16).hexdigest()
 
 
 def best_record(run_dir: str) -> dict[int, dict]:
@@ -129,9 +196,10 @@ def save_policy(run_dir: str, seed: int, epoch: int, value: float, policy) -> No
     ``seed``'s selected policy, chosen at ``epoch`` with validation error ``value``."""
     folder = os.path.join(run_dir, "best")
     os.makedirs(folder, exist_ok=True)
-    _atomic_write(os.path.join(folder, f"seed{seed}.msgpack"), serialization.to_bytes(jax.device_get(policy)))
+    data = serialization.to_bytes(jax.device_get(policy))
+    _atomic_write(os.path.join(folder, f"seed{seed}.msgpack"), data)
     record = best_record(run_dir)
-    record[seed] = {"epoch": int(epoch), "val_tracking_error": float(value)}
+    record[seed] = {"epoch": int(epoch), "val_tracking_error": float(value), "digest": _bytes_digest(data)}
     _atomic_write(
         os.path.join(folder, "best.json"), json.dumps({str(k): v for k, v in sorted(record.items())})
     )
@@ -146,6 +214,9 @@ def load_policy(run_dir: str, seed: int, like):
         )
     with open(path, "rb") as fh:
         data = fh.read()
+    expected = best_record(run_dir).get(seed, {}).get("digest")
+    if expected is not None and _bytes_digest(data) != expected:
+        raise CorruptCheckpoint(f"{path} does not match the digest in best/best.json (the file is damaged)")
     try:
         return serialization.from_bytes(like, data)
     except Exception as e:

@@ -23,6 +23,7 @@ import sys
 import tyro
 
 from ttd3_jax import report, runs
+from ttd3_jax.cli_checks import bool_flags, refuse_bool_values, writable_dir, writable_file
 from ttd3_jax.control import generalization as gen
 from ttd3_jax.control.evaluator import (
     CONTROLLERS,
@@ -92,6 +93,10 @@ def check_args(ap: argparse.ArgumentParser, args) -> dict:
         if value < lo:
             ap.error(f"{flag} must be >= {lo}, got {value}")
     options = {k: getattr(args, a) for k, a in _NMPC_OPTIONS if getattr(args, a) is not None}
+    try:
+        check_output_paths(args)
+    except ValueError as e:
+        ap.error(str(e))
     args.custom = None
     if args.track not in ("all", *tr.TEST_TRACKS):
         if args.suite is not None:
@@ -134,6 +139,14 @@ def check_args(ap: argparse.ArgumentParser, args) -> dict:
     return options
 
 
+def check_output_paths(args) -> None:
+    """``--json`` and ``--plots`` can be written (before the evaluation, not after it)."""
+    if args.json is not None:
+        writable_file("--json", args.json)
+    if args.plots is not None:
+        writable_dir("--plots", args.plots)
+
+
 @dataclasses.dataclass(frozen=True)
 class _Task:
     task: EnvConfig
@@ -158,6 +171,7 @@ def classical_env(preset: str, task_args: list[str], vehicle: str | None = None)
     which exits 2 on a bad value)."""
     default = make_config(preset)
     default = default if vehicle is None else with_vehicle(default, vehicle)
+    refuse_bool_values(task_args, bool_flags(_Task))
     cfg = tyro.cli(_Task, default=_Task(default), args=task_args, prog="python -m ttd3_jax.evaluate").task
     protocol = [f for f in EVAL_PROTOCOL_FIELDS if getattr(cfg, f) != getattr(default, f)]
     if protocol:
@@ -305,7 +319,12 @@ def main(argv=None) -> int:
             print(report.format_robustness(label, rob))
         for name, text in ROBUSTNESS_DESCRIPTIONS.items():
             print(f"  {name}: {text}")
-    write_outputs(args, out, traces, header.get("algo", args.controller))
+    try:
+        write_outputs(args, out, traces, header.get("algo", args.controller))
+    except OSError as e:
+        print(f"error: cannot write the results ({e.strerror}: {e.filename}); the table above is complete, "
+              "pass --json FILE / --plots DIR where there is room", file=sys.stderr)  # fmt: skip
+        return 1
     return 0
 
 

@@ -15,6 +15,7 @@ import sys
 
 from ttd3_jax import policy_export as pe
 from ttd3_jax import runs
+from ttd3_jax.cli_checks import writable_dir
 from ttd3_jax.sim.env import TrackingEnv
 
 
@@ -38,8 +39,10 @@ def check_args(ap: argparse.ArgumentParser, args) -> None:
         ap.error("--best and --epoch exclude each other")
     if args.epoch is not None and args.epoch < 0:
         ap.error(f"--epoch must be >= 0, got {args.epoch}")
-    if os.path.isfile(args.out):
-        ap.error(f"--out {args.out!r} is a file, not a directory")
+    try:
+        writable_dir("--out", args.out)
+    except ValueError as e:
+        ap.error(str(e))
     there = [f for f in pe.FILES if os.path.exists(os.path.join(args.out, f))]
     if there and not args.force:
         ap.error(f"--out {args.out!r} already holds {there}; pass --force to overwrite them")
@@ -80,9 +83,12 @@ def main(argv: list[str] | None = None) -> int:
     meta = pe.sidecar(run_dir, run, seed, args.best, obs_size)
     try:
         written = pe.write(args.out, policy, meta, onnx=not args.no_onnx)
-    except ValueError as e:
+    except ValueError as e:  # non-finite weights
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:
+        print(f"error: --out {args.out!r}: cannot write the policy files ({e.strerror})", file=sys.stderr)
+        return 1
     print(f"wrote {', '.join(written)} to {args.out} (run {meta['source']['run']}, seed {seed}, "
           f"epoch {meta['source']['epoch']}, {meta['control_hz']:g} Hz)")  # fmt: skip
     return 0

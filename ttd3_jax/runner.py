@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 from ttd3_jax import checkpoint as ckpt
-from ttd3_jax import report, runs
+from ttd3_jax import memory, report, run_state, runs
 from ttd3_jax import spec as sp
 from ttd3_jax.cache import StoredProgram, program_store
 from ttd3_jax.control.paper import PAPER_TTD3, beats_paper
@@ -29,32 +29,6 @@ from ttd3_jax.td3.trainer import seed_keys
 
 class TrainingDiverged(RuntimeError):
     """Raised when losses or parameters stop being finite."""
-
-
-def available_memory_bytes() -> int | None:
-    """Free memory of the default device (GPU) or of the host (CPU), if known."""
-    dev = jax.devices()[0]
-    if dev.platform != "cpu":
-        stats = dev.memory_stats() or {}
-        if "bytes_limit" in stats:
-            return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        return None
-
-
-def check_memory(spec: sp.RunSpec, obs_size: int, action_size: int) -> int:
-    """Replay-buffer bytes for the run; refuses budgets over 70 % of free memory."""
-    need = sp.buffer_bytes(spec, obs_size, action_size)
-    free = available_memory_bytes()
-    if free is not None and need > 0.7 * free:
-        raise ValueError(
-            f"the replay buffers need {need / 2**30:.2f} GiB (buffer_size={spec.train.buffer_size} x "
-            f"num_seeds={spec.num_seeds} x {obs_size}-D observations) but only {free / 2**30:.2f} GiB is "
-            "free; lower buffer_size or num_seeds"
-        )
-    return need
 
 
 class LiveBar:
@@ -133,16 +107,23 @@ def check_finite(m: dict, ts, epoch: int, run_dir: str, mngr) -> None:
 def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = None,
         verbose: bool = True, stop_after: int | None = None, checkpoint_every: int = 1) -> dict:  # fmt: skip
     """Train ``spec`` into a new run directory under ``out``, or continue the run in
-    ``resume`` from its newest checkpoint that loads.  ``stop_after`` ends this call after
-    that many epochs, as an interruption would (resume continues).  A checkpoint is written
-    every ``checkpoint_every`` epochs and after the last one (a kill loses at most the epochs
-    since; large replay buffers make each save cost seconds).  Returns a summary dict
-    (run_dir, final eval, timings)."""
+    ``resume`` from its newest checkpoint that loads (a run without one starts over; a
+    finished run is left as it is).  ``stop_after`` ends this call after that many epochs,
+    as an interruption would (resume continues).  A checkpoint is written every
+    ``checkpoint_every`` epochs and after the last one (a kill loses at most the epochs
+    since; large replay buffers make each save cost seconds).  The memory the run needs is
+    checked before anything is written or compiled, and the run directory is locked while
+    it trains (:mod:`ttd3_jax.run_state`).  Returns a summary dict (run_dir, final eval,
+    timings)."""
     if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int) or checkpoint_every < 1:
         raise ValueError(f"checkpoint_every must be an integer >= 1, got {checkpoint_every!r}")
     log = print if verbose else (lambda *a, **k: None)
     if resume is not None:
         spec = runs.load_spec(resume)
+        done = finished_note(resume, spec)
+        if done:
+            log(done)
+            return {"run_dir": resume, "finished": True}
     elif spec is None:
         raise ValueError("run() needs a RunSpec or a run directory to resume")
     else:
@@ -152,32 +133,55 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = 
         log(f"budget: {c.transitions_run:,} of total_transitions {c.total_transitions:,} per seed "
             f"({c.warmup_steps * c.num_envs:,} warm-up, then {c.epochs} epochs x {c.steps_per_epoch} vector "
             f"steps x {c.env_steps_per_step} env steps x {c.num_envs} envs)")  # fmt: skip
-    live = LiveBar(c.epochs) if verbose and sys.stdout.isatty() else None
     stages, t = {}, time.perf_counter()
     trainer = sp.trainer_for(spec)
-    check_memory(spec, trainer.env.obs_size, trainer.env.action_size)
+    memory.check(spec, trainer.env.obs_size, trainer.env.action_size)  # before anything is written
+    run_dir = resume if resume is not None else runs.new_run_dir(out, spec)
+    with run_state.writing(run_dir, log):
+        return _train(_Run(spec, trainer, run_dir, resume is not None, log, stages), t, stop_after,
+                      checkpoint_every)  # fmt: skip
+
+
+class _Run(NamedTuple):
+    spec: sp.RunSpec
+    trainer: object
+    run_dir: str
+    resuming: bool
+    log: object
+    stages: dict
+
+
+def finished_note(run_dir: str, spec: sp.RunSpec) -> str | None:
+    """What to say instead of resuming a run that already finished (``None``: it did not)."""
+    st = run_state.state(run_dir).get("state")
+    folder = os.path.join(run_dir, "checkpoints")
+    steps = [int(n) for n in os.listdir(folder) if n.isdigit()] if os.path.isdir(folder) else []
+    legacy = st == "unknown" and os.path.isfile(os.path.join(run_dir, "eval.json"))
+    if st == "finished" or (legacy and max(steps, default=-1) >= spec.train.epochs):
+        return (f"{run_dir} finished all {spec.train.epochs} epochs (eval.json); nothing to resume. "
+                f"Evaluate it with python -m ttd3_jax.evaluate {run_dir}")  # fmt: skip
+    return None
+
+
+def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> dict:
+    """The run under its lock: start (or restore), compile, the epochs, the results."""
+    spec, run_dir, log, stages, c = r.spec, r.run_dir, r.log, r.stages, r.spec.train
+    live = LiveBar(c.epochs) if log is print and sys.stdout.isatty() else None
     keys, hp = seed_keys(spec.seed, spec.num_seeds), spec.hp
     # plain jit on one device; seeds (and envs) split over all visible devices otherwise
-    init_fn, epoch_fn, eval_fn, place = _stored(spec, runner_fns(trainer, keys, hp))
+    init_fn, epoch_fn, eval_fn, place = _stored(spec, runner_fns(r.trainer, keys, hp))
     t = _stage(stages, "construct", t)
-    if resume is None:
-        run_dir = runs.new_run_dir(out, spec)
-        mngr = ckpt.manager(run_dir, asynchronous=True)
-        init_c, t = _program(stages, "init", init_fn, (keys, hp), t)
-        ts, start = jax.block_until_ready(init_c(keys, hp)), 0  # warm-up collection included
-        t = _stage(stages, "warmup", t)
-        ckpt.save(mngr, 0, ts)  # on disk before compiling (a write alongside slows the compile)
-        t = _stage(stages, "first_checkpoint", t)
-        csv_log = runs.CsvLog(os.path.join(run_dir, "metrics.csv"))
-        log(f"run dir {run_dir}")
-        init_s = stages["init_lower_s"] + stages["init_compile_s"]
-        log(f"init + warm-up ({c.warmup_steps * c.num_envs} transitions per seed): compile {init_s:.1f} s, "
-            f"run {stages['warmup_s']:.1f} s, checkpoint {stages['first_checkpoint_s']:.1f} s")  # fmt: skip
-    else:
-        run_dir, (ts, start, csv_log) = resume, _resume(resume, init_fn, keys, hp, place, log)
-        mngr = ckpt.manager(run_dir, asynchronous=True)  # after _resume deleted what does not load
-        t = _stage(stages, "restore", t)
+    mngr = None
     try:  # until the checkpoint being written in the background is on disk (also on errors, Ctrl-C)
+        if r.resuming and (_has_checkpoint(run_dir) or os.path.exists(os.path.join(run_dir, "metrics.csv"))):
+            ts, start, csv_log = _resume(run_dir, init_fn, keys, hp, place, log)
+            mngr = ckpt.manager(run_dir, asynchronous=True)  # after _resume deleted what does not load
+            t = _stage(stages, "restore", t)
+        else:
+            if r.resuming:
+                log(f"{run_dir} has no checkpoint (it stopped before its first): starting it over")
+            mngr = ckpt.manager(run_dir, asynchronous=True)
+            ts, start, csv_log, t = _fresh(r, mngr, init_fn, keys, hp, t)
         epoch_c, t = _program(stages, "epoch", epoch_fn, (ts, hp), t)
         eval_c, t = _program(stages, "eval", eval_fn, (jax.eval_shape(lambda t: t, ts),), t)
         ep_s, ev_s = (stages[f"{p}_lower_s"] + stages[f"{p}_compile_s"] for p in ("epoch", "eval"))
@@ -188,15 +192,42 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = 
         loop = _Loop(spec, run_dir, mngr, csv_log, epoch_c, eval_c, live, log, checkpoint_every)
         ts, ev, run_s, stages["epochs"] = _epochs(loop, ts, start, last)
     finally:
-        ckpt.finish(mngr)
+        if mngr is not None:
+            ckpt.close(mngr)
     if last < c.epochs:
+        run_state.mark(run_dir, "stopped", epoch=last)
         log(f"stopped after epoch {last}/{c.epochs}; continue with --resume {run_dir}")
         return {"run_dir": run_dir, "stopped_at": last}
     ev = ev if ev is not None else jax.device_get(eval_c(ts))
     summary = _finish(run_dir, spec, ev, ep_s + ev_s, run_s, stages)
+    run_state.mark(run_dir, "finished", epoch=last)
     extra = ", best/ (the policy selected on the validation tracks)" if spec.is_quadrotor else ""
     log(f"results in {run_dir}: metrics.csv, eval.json, learning_curve.png, checkpoints/{extra}")
     return summary
+
+
+def _has_checkpoint(run_dir: str) -> bool:
+    m = ckpt.manager(run_dir, read_only=True)
+    try:
+        return bool(m.all_steps())
+    finally:
+        m.close()
+
+
+def _fresh(r: _Run, mngr, init_fn, keys, hp, t: float):
+    """Initialise, collect the warm-up and write checkpoint 0: ``(ts, 0, csv_log, t)``."""
+    stages, c = r.stages, r.spec.train
+    init_c, t = _program(stages, "init", init_fn, (keys, hp), t)
+    ts = jax.block_until_ready(init_c(keys, hp))  # warm-up collection included
+    t = _stage(stages, "warmup", t)
+    ckpt.save(mngr, 0, ts)  # on disk before compiling (a write alongside slows the compile)
+    t = _stage(stages, "first_checkpoint", t)
+    csv_log = runs.CsvLog(os.path.join(r.run_dir, "metrics.csv"))
+    r.log(f"run dir {r.run_dir}")
+    init_s = stages["init_lower_s"] + stages["init_compile_s"]
+    r.log(f"init + warm-up ({c.warmup_steps * c.num_envs} transitions per seed): compile {init_s:.1f} s, "
+          f"run {stages['warmup_s']:.1f} s, checkpoint {stages['first_checkpoint_s']:.1f} s")  # fmt: skip
+    return ts, 0, csv_log, t
 
 
 def _stored(spec: sp.RunSpec, fns: tuple) -> tuple:
@@ -235,8 +266,9 @@ def _stage(stages: dict, name: str, t: float) -> float:
 
 def _resume(run_dir: str, init_fn, keys, hp, place, log):
     """The newest checkpoint that loads (newer ones that do not are deleted, and said so),
-    and the metrics log cut back to it.  Refuses a run without a loadable checkpoint."""
-    if not ckpt.manager(run_dir).all_steps():
+    and the metrics log cut back to it.  Refuses a run that logged epochs but holds no
+    checkpoint (one that stopped before its first starts over instead)."""
+    if not _has_checkpoint(run_dir):  # yet it logged epochs: its checkpoints were removed
         raise FileNotFoundError(
             f"{os.path.join(run_dir, 'checkpoints')} holds no checkpoint, so there is nothing to resume; "
             "start a new run (its metrics.csv is left as it is)"
@@ -244,7 +276,9 @@ def _resume(run_dir: str, init_fn, keys, hp, place, log):
     start, state, skipped = ckpt.restore_newest(run_dir, init_fn.eval_shape(keys, hp))
     for epoch, reason in skipped:
         log(f"skipped checkpoint {epoch}, which does not load ({reason}); it is deleted")
-        ckpt.manager(run_dir).delete(epoch)
+        m = ckpt.manager(run_dir)
+        m.delete(epoch)
+        m.close()
     csv_log = runs.CsvLog(os.path.join(run_dir, "metrics.csv"), keep_through_epoch=start)
     log(f"resumed {run_dir} at epoch {start}/{runs.load_spec(run_dir).train.epochs}")
     return place(state), start, csv_log

@@ -8,15 +8,19 @@ from __future__ import annotations
 
 import csv
 import datetime
+import itertools
 import json
 import os
+import sys
 from typing import Any, NamedTuple
 
 import jax
 import numpy as np
 
 from ttd3_jax import checkpoint as ckpt
+from ttd3_jax import run_state
 from ttd3_jax import spec as sp
+from ttd3_jax.cli_checks import writable_dir
 from ttd3_jax.control.closed_loop import policy_controller
 from ttd3_jax.control.evaluator import Build, index
 from ttd3_jax.sharding import per_seed
@@ -29,25 +33,24 @@ CONFIG = "config.json"
 
 def check_out_dir(out: str) -> None:
     """Refuse an ``--out`` that is a file or cannot be written, before anything compiles."""
-    path = os.path.abspath(out)
-    probe = path
-    while not os.path.exists(probe):
-        probe = os.path.dirname(probe)
-    if not os.path.isdir(probe):
-        raise ValueError(f"--out {out!r}: {probe!r} is a file, not a directory")
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise ValueError(f"--out {out!r}: {probe!r} is not writable; pass --out DIR with a writable DIR")
+    writable_dir("--out", out)
 
 
 def new_run_dir(out: str, spec: sp.RunSpec) -> str:
-    """A fresh ``out/<env>-<algo>-s<seed>-<time>`` directory, with ``config.json`` in it."""
+    """A fresh ``out/<env>-<algo>-s<seed>-<time>`` directory, with ``config.json`` in it.  The
+    directory is created atomically: a name another process took first gets a suffix."""
     check_out_dir(out)
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
     base = os.path.join(out, f"{spec.env}-{spec.algo}-s{spec.seed}-{stamp}")
-    path, i = base, 1
-    while os.path.exists(path):
-        path, i = f"{base}-{i}", i + 1
-    os.makedirs(path)
+    for i in itertools.count():
+        path = base if i == 0 else f"{base}-{i}"
+        try:
+            os.makedirs(path)
+            break
+        except FileExistsError:
+            continue
+        except OSError as e:
+            raise ValueError(f"--out {out!r}: cannot create {path!r} ({e.strerror})") from None
     with open(os.path.join(path, CONFIG), "w") as fh:
         json.dump(sp.to_dict(spec), fh, indent=2)
     return path
@@ -55,7 +58,8 @@ def new_run_dir(out: str, spec: sp.RunSpec) -> str:
 
 def find_run(path: str) -> tuple[str, str | None]:
     """``(run_dir, note)``: ``path`` itself when it holds a ``config.json``, else the newest
-    run directly under it (a training ``--out`` directory), with a note naming the choice."""
+    run directly under it (a training ``--out`` directory) that did not fail, with a note
+    naming the choice and the failed runs passed over."""
     if os.path.isfile(os.path.join(path, CONFIG)) or not os.path.isdir(path):
         return path, None
     found = sorted((e for e in os.scandir(path) if os.path.isfile(os.path.join(e.path, CONFIG))),
@@ -63,8 +67,16 @@ def find_run(path: str) -> tuple[str, str | None]:
     if not found:
         msg = f"no {CONFIG} in {path!r} or its subdirectories: not a ttd3_jax run directory"
         raise FileNotFoundError(msg)
-    note = f"{path!r} holds {len(found)} runs; using the newest, {found[-1].name}" if len(found) > 1 else None
-    return found[-1].path, note
+    states = {e.name: run_state.state(e.path) for e in found}
+    failed = [e for e in found if states[e.name]["state"] == "failed"]
+    usable = [e for e in found if e not in failed]
+    notes = [f"skipped {e.name} (failed: {states[e.name].get('reason', '?')})" for e in failed]
+    if not usable:
+        raise FileNotFoundError(f"every run in {path!r} failed: {'; '.join(notes)}")
+    if len(found) > 1:
+        notes.append(f"{path!r} holds {len(found)} runs; using the newest{' usable' * bool(failed)}, "
+                     f"{usable[-1].name}")  # fmt: skip
+    return usable[-1].path, "\n".join(notes) or None
 
 
 def load_spec(run_dir: str) -> sp.RunSpec:
@@ -160,6 +172,24 @@ def load_train_state(run_dir: str, epoch: int | None = None) -> LoadedState:
     return LoadedState(spec, trainer, state, epoch, skipped)
 
 
+def selected_policy(run_dir: str, seed: int, index_: int, like, epoch: int):
+    """Seed ``seed``'s policy from ``best/``; a damaged file (digest mismatch, or it does not
+    load) is rebuilt in memory from checkpoint ``epoch`` when that one is still kept, and
+    said so on stderr; otherwise refused, with what to do."""
+    try:
+        return ckpt.load_policy(run_dir, seed, like)
+    except ValueError as e:
+        damaged = str(e)
+    try:
+        st = load_train_state(run_dir, epoch).state
+    except FileNotFoundError:
+        why = f"its epoch {epoch} checkpoint is no longer kept, so it cannot be rebuilt"
+        raise ValueError(f"{damaged}; {why}: use the newest checkpoint (leave out --best)") from None
+    stats = index(st.obs_stats, index_) if like["obs_stats"] is not None else None
+    print(f"note: {damaged}; rebuilt from checkpoint {epoch}, the epoch it was selected at", file=sys.stderr)
+    return {"actor": index(st.actor, index_), "obs_stats": stats}
+
+
 class LoadedRun(NamedTuple):
     spec: sp.RunSpec
     env_config: EnvConfig  # the run's (training) env config
@@ -193,7 +223,7 @@ def load_run(run_dir: str, epoch: int | None = None, best: bool = False) -> Load
             )
         stats = networks.init_obs_stats(setup.env.obs_size) if spec.train.normalize_obs else None
         like = {"actor": initial_actor(setup, jax.random.PRNGKey(0)), "obs_stats": stats}
-        policies = [ckpt.load_policy(run_dir, s, like) for s in seeds]
+        policies = [selected_policy(run_dir, s, i, like, record[s]["epoch"]) for i, s in enumerate(seeds)]
         thetas = [(s, (p["actor"], p["obs_stats"])) for s, p in zip(seeds, policies, strict=True)]
         return LoadedRun(spec, spec.task, {s: record[s]["epoch"] for s in seeds}, build, thetas, [])
     loaded = load_train_state(run_dir, epoch)

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import dataclasses
+import typing
 from typing import Annotated
 
 import dacite
@@ -20,6 +21,20 @@ from ttd3_jax.td3.trainer import Trainer, make_trainer
 
 QUADROTOR = "quadrotor"
 PRESETS = ("fast", "fast_dpg", "fast_model_free", "paper", "mujoco")
+SEED_LIMIT = 2**32  # seeds are uint32 PRNG keys: seed + num_seeds - 1 must stay below this
+CONFIG_FORMAT = 1  # config.json's "format"; files without one were written before it (format 0)
+# Fields added to the run spec after runs were first saved (2026-11-22), each with the value
+# that reproduces what a run saved before it did.  Only format-0 files may lack them.
+ADDED_FIELDS = {
+    ("train", "model_horizon"): 0,  # 2026-12-01: the model-based actor update
+    ("train", "critic_arch"): "mlp",  # 2026-12-03: residual critics
+    ("task", "err_scale"): 0.02,  # 2026-12-03: err_cost="log"
+    ("task", "memory_tau"): 1.0,  # 2026-12-03: the observation's memory
+    ("task", "obs_memory"): False,
+    ("task", "obs_privileged"): False,  # 2026-12-03: the critics' privileged inputs
+    ("task", "train_tracks"): [],  # 2026-12-03: users' tracks in the training mixture
+    ("task", "train_tracks_weight"): 0.25,
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,6 +73,11 @@ class RunSpec:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+        if self.seed + self.num_seeds > SEED_LIMIT:
+            raise ValueError(
+                f"seed must be an integer in [0, {SEED_LIMIT - self.num_seeds}] (seeds seed .. seed + "
+                f"num_seeds - 1 are 32-bit PRNG seeds), got {self.seed}"
+            )
         for name, kind in (
             ("train", TrainConfig),
             ("hp", Hyper),
@@ -163,8 +183,47 @@ def replace(spec: RunSpec, **changes) -> RunSpec:
 
 
 def to_dict(spec: RunSpec) -> dict:
-    """The spec as plain JSON values (``config.json``)."""
-    return dataclasses.asdict(spec)
+    """The spec as plain JSON values (``config.json``), with its ``format``."""
+    return {"format": CONFIG_FORMAT, **dataclasses.asdict(spec)}
+
+
+def migrate(d) -> dict:
+    """``config.json`` as any version wrote it, in the current layout (without ``format``).
+    A format-0 file (no ``format``: written before 2026-12-04) may lack the fields in
+    :data:`ADDED_FIELDS`, which take the value runs had before them; nothing else is filled."""
+    if not isinstance(d, dict):
+        raise ValueError(f"run spec: the file must hold a JSON object, got {type(d).__name__}")
+    version = d.get("format", 0)
+    out = {k: v for k, v in d.items() if k != "format"}
+    if version == CONFIG_FORMAT:
+        return out
+    if version != 0:
+        raise ValueError(f"run spec: format {version!r} is not one this version reads (0, {CONFIG_FORMAT})")
+    for (group, name), value in ADDED_FIELDS.items():
+        if isinstance(out.get(group), dict) and name not in out[group]:
+            out[group] = {**out[group], name: value}
+    return out
+
+
+def missing_fields(cls, d: dict, path: str = "") -> list[str]:
+    """The fields of ``cls`` (nested ones as ``group.field``) that ``d`` lacks.  Refuses a
+    nested value of the wrong kind (not an object where a dataclass goes, not a list where a
+    tuple goes), naming the field; dacite checks the rest."""
+    hints, out = typing.get_type_hints(cls), []
+    for f in dataclasses.fields(cls):
+        where, kind = f"{path}{f.name}", hints[f.name]
+        if f.name not in d:
+            out.append(where)
+            continue
+        v = d[f.name]
+        if dataclasses.is_dataclass(kind):
+            if not isinstance(v, dict):
+                raise ValueError(f'run spec: field "{where}" - should be "{kind.__name__}" (an object of its '
+                                 f"fields), got {v!r}")  # fmt: skip
+            out += missing_fields(kind, v, where + ".")
+        elif typing.get_origin(kind) is tuple and not isinstance(v, list):
+            raise ValueError(f'run spec: field "{where}" - should be a list, got {v!r}')
+    return out
 
 
 # JSON lists are tuples here, and an integer is a float where a float goes (``"u_max": 1``)
@@ -174,9 +233,15 @@ _DACITE = dacite.Config(
 
 
 def from_dict(d: dict) -> RunSpec:
-    """The spec stored by :func:`to_dict` (dacite builds the nested dataclasses and checks
-    every value's type).  Raises ``ValueError`` naming a field that does not exist or a value
-    of the wrong type; fields a file leaves out take their defaults."""
+    """The spec stored by :func:`to_dict`, through :func:`migrate` (dacite builds the nested
+    dataclasses and checks every value's type).  Raises ``ValueError`` naming a field that is
+    missing, does not exist or holds a value of the wrong type: no field takes a default."""
+    d = migrate(d)
+    missing = missing_fields(RunSpec, d)
+    if missing:
+        names, many = ", ".join(f'"{m}"' for m in missing), len(missing) > 1
+        raise ValueError(f"run spec: field{'s' * many} {names} {'are' if many else 'is'} missing "
+                         "(config.json must hold every field)")  # fmt: skip
     try:
         return dacite.from_dict(RunSpec, d, config=_DACITE)
     except dacite.DaciteError as e:

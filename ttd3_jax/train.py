@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import logging
 import os
 import sys
@@ -24,10 +25,12 @@ import tyro
 from ttd3_jax import runs
 from ttd3_jax import spec as sp
 from ttd3_jax.cache import use_compile_cache
+from ttd3_jax.cli_checks import bool_flags, refuse_bool_values
 from ttd3_jax.runner import TrainingDiverged, run
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim.vehicles import VEHICLE_NAMES, with_vehicle
 
+PROG = "python -m ttd3_jax.train"
 DESCRIPTION = (
     "Train T-TD3 or TD3 (preset {preset!r}; defaults below are that preset's). Also: "
     "--preset {presets}, --out DIR (default runs), --resume RUN_DIR, "
@@ -49,7 +52,10 @@ def track_files(path: str) -> tuple[str, ...]:
     else:
         raise ValueError(f"--train-tracks {path!r}: no such file or directory")
     for f in files:
-        ct.from_csv(f)  # a bad file is refused now, naming it, not when the env is built
+        try:  # a bad file is refused now, naming it, not when the env is built
+            ct.from_csv(f)
+        except ValueError as e:
+            raise ValueError(f"--train-tracks: {e}") from None
     return tuple(os.path.abspath(f) for f in files)
 
 
@@ -81,15 +87,20 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
         extra = [f"--{k.replace('_', '-')}" for k in given] + rest
         if extra:
             raise ValueError(f"--resume continues the saved run spec; remove {' '.join(extra)}")
+        known.resume, note = runs.find_run(known.resume)
+        if note:
+            print(note)
         return known, None
-    name = known.preset or "fast"
+    name = "fast" if known.preset is None else known.preset
     if name not in sp.PRESETS:
         raise ValueError(f"--preset must be one of {sp.PRESETS}, got {name!r}")
     default = preset_with_vehicle(name, known.vehicle)
+    refuse_bool_values(rest, bool_flags(sp.RunSpec))
     spec = tyro.cli(
         sp.RunSpec,
         default=default,
         args=rest,
+        prog=PROG,
         description=DESCRIPTION.format(
             preset=name, presets="|".join(sp.PRESETS), vehicles="|".join(VEHICLE_NAMES)
         ),
@@ -101,7 +112,7 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
     if known.train_tracks is not None:
         task = dataclasses.replace(spec.task, train_tracks=track_files(known.train_tracks))
         spec = dataclasses.replace(spec, task=task)
-    known.out = known.out or "runs"
+    known.out = "runs" if known.out is None else known.out
     runs.check_out_dir(known.out)
     return known, spec
 
@@ -124,7 +135,35 @@ def main(argv: list[str] | None = None) -> int:
     except TrainingDiverged as e:
         print(f"error: {e}", file=sys.stderr)
         return 3
+    except Exception as e:  # a full disk or device memory: one line with what to do, no traceback
+        message = failure_message(e)
+        if message is None:
+            raise
+        print(f"error: {message}", file=sys.stderr)
+        return 1
     return 0
+
+
+def _chain(e: BaseException):
+    while e is not None:
+        yield e
+        e = e.__cause__ or e.__context__
+
+
+def failure_message(e: Exception) -> str | None:
+    """The one line for a run stopped by a full disk or by running out of memory (``None``
+    for other errors, which keep their traceback)."""
+    run_dir = getattr(e, "run_dir", None)
+    resume = f"python -m ttd3_jax.train --resume {run_dir}" if run_dir else "--resume RUN_DIR"
+    if any(
+        getattr(x, "errno", None) == errno.ENOSPC or "No space left on device" in str(x) for x in _chain(e)
+    ):
+        return f"the disk is full; free space, then continue with {resume}"
+    if "RESOURCE_EXHAUSTED" in str(e) or isinstance(e, MemoryError):
+        first = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
+        return (f"out of memory ({first}); lower buffer_size, hidden, num_envs or num_seeds and start a new "
+                f"run (or {resume} on a machine with more memory)")  # fmt: skip
+    return None
 
 
 if __name__ == "__main__":

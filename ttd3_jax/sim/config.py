@@ -22,6 +22,7 @@ CRASH_GAMMA = 0.99  # the discount the derived crash penalty is sized for (spec 
 # the fields EnvConfig.for_eval sets, and the episode length it keeps (keep them together)
 EVAL_PROTOCOL_FIELDS = ("track", "los_seed", "randomize_init", "terminate", "wind_sigma", "e_max",
                         "obs_noise_pos", "obs_noise_vel", "obs_noise_quat", "episode_steps")  # fmt: skip
+DT_MAX = 0.01  # s: the physics step the integrator is used with at most (the body-rate lag is 0.03 s)
 EVAL_CRASH_M = 1.0  # m: every controller is judged crashed once its error exceeds this in evaluation
 
 
@@ -144,6 +145,11 @@ def _validate(c: EnvConfig) -> None:
     for name in ("dt", "e_max", "wind_tau", "rho1", "err_scale", "memory_tau"):
         if _number(c, name) <= 0:
             raise ValueError(f"EnvConfig.{name} must be > 0, got {getattr(c, name)!r}")
+    if c.dt > DT_MAX:
+        raise ValueError(
+            f"EnvConfig.dt must be in (0, {DT_MAX:g}] s (the RK4 physics step; the paper's is 0.001 s, "
+            f"control steps are longer through action_repeat), got {c.dt!r}"
+        )
     for name in ("episode_steps", "action_repeat", "rk4_substeps", "lookahead_k"):
         v = getattr(c, name)
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -176,8 +182,9 @@ def _validate(c: EnvConfig) -> None:
             f"({c.action_repeat})"
         )
     w = c.effort_weights
-    if len(w) != 4 or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not x >= 0 for x in w):
-        raise ValueError(f"EnvConfig.effort_weights must be 4 numbers >= 0, got {w!r}")
+    if len(w) != 4 or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not 0 <= x < math.inf
+                          for x in w):  # fmt: skip
+        raise ValueError(f"EnvConfig.effort_weights must be 4 finite numbers >= 0, got {w!r}")
     if not isinstance(c.quad, QuadParams):
         raise ValueError(f"EnvConfig.quad must be a QuadParams, got {type(c.quad).__name__}")
     validate_params(c.quad)

@@ -34,6 +34,7 @@ from ttd3_jax.sim import trajectories as tr
 CSV_REQUIRED = ("t", "x", "y", "z")
 CSV_OPTIONAL = (("vx", "vy", "vz"), ("ax", "ay", "az"))
 MIN_SAMPLES = 3
+MAX_RATE = 1e6  # bound on |velocity| (m/s) and |acceleration| (m/s^2), given or derived
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,11 +70,14 @@ class CustomTrack:
         return tr.table(pos, np.concatenate([self.vel, zeros]), np.concatenate([self.acc, zeros]))
 
 
-def _array(name: str, x, shape_hint: str) -> np.ndarray:
+def _array(name: str, x, shape_hint: str, bound: float = math.inf) -> np.ndarray:
     a = np.asarray(x, dtype=np.float64)
-    if not np.all(np.isfinite(a)):
-        bad = np.argwhere(~np.isfinite(a))[0]
-        raise ValueError(f"{name} must be finite; entry {tuple(int(i) for i in bad)} is {a[tuple(bad)]}")
+    with np.errstate(over="ignore", invalid="ignore"):  # derived differences of huge values
+        ok = np.isfinite(a) & (np.abs(a) <= bound)
+    if not np.all(ok):
+        bad = tuple(int(i) for i in np.argwhere(~ok)[0])
+        span = f" and within ±{bound:g}" if math.isfinite(bound) else ""
+        raise ValueError(f"{name} must be finite{span}; entry {bad} is {a[bad]}")
     if a.ndim != len(shape_hint.split(",")):
         raise ValueError(f"{name} must have shape ({shape_hint}), got {a.shape}")
     return a
@@ -93,11 +97,14 @@ def from_samples(t, pos, vel=None, acc=None, *, dt: float = 1e-3, name: str = "c
     t = t - t[0]
     if t[-1] < 2 * dt:
         raise ValueError(f"the track lasts {t[-1]} s; it must last at least 2 physics steps ({2 * dt} s)")
-    p = _array("pos", pos, "N, 3")
+    p = _array("pos [m]", pos, "N, 3", tr.MAX_COORD)
     if p.shape != (t.size, 3):
         raise ValueError(f"pos must have shape ({t.size}, 3) to match t, got {p.shape}")
-    v = np.gradient(p, t, axis=0, edge_order=2) if vel is None else _array("vel", vel, "N, 3")
-    a = np.gradient(v, t, axis=0, edge_order=2) if acc is None else _array("acc", acc, "N, 3")
+    with np.errstate(over="ignore", invalid="ignore"):
+        v = np.gradient(p, t, axis=0, edge_order=2) if vel is None else vel
+        v = _array("vel [m/s]" + " (from pos)" * (vel is None), v, "N, 3", MAX_RATE)
+        a = np.gradient(v, t, axis=0, edge_order=2) if acc is None else acc
+        a = _array("acc [m/s^2]" + " (from vel)" * (acc is None), a, "N, 3", MAX_RATE)
     for label, x in (("vel", v), ("acc", a)):
         if x.shape != p.shape:
             raise ValueError(f"{label} must have shape {p.shape} like pos, got {x.shape}")
@@ -118,13 +125,18 @@ def from_function(f: Callable[[np.ndarray], np.ndarray], duration_s: float, *, d
 
 def from_csv(path: str, *, dt: float = 1e-3) -> CustomTrack:
     """A track from a CSV file (see the module docstring); errors name the file."""
-    try:
-        with open(path, newline="") as fh:  # (line number, cells); blank and "#" lines skipped
+    try:  # utf-8-sig: a byte-order mark (as Excel writes) is not part of the first column's name
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # (line number, cells); blank, "#" skipped
             rows = [
                 (n, r) for n, r in enumerate(csv.reader(fh), 1) if r and not r[0].lstrip().startswith("#")
             ]
     except OSError as e:
         raise ValueError(f"cannot read track file {path!r}: {e.strerror}") from None
+    except (UnicodeDecodeError, csv.Error) as e:
+        bad = isinstance(e, UnicodeDecodeError)
+        what = f"byte {e.object[e.start]:#04x} at offset {e.start}" if bad else e
+        head = ",".join(CSV_REQUIRED)
+        raise ValueError(f"{path} is not a CSV text file ({what}); expected a header {head}") from None
     if not rows:
         raise ValueError(f"{path}: empty file; expected a header {','.join(CSV_REQUIRED)}")
     head = [h.strip() for h in rows[0][1]]

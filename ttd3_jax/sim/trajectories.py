@@ -28,6 +28,8 @@ from flax import struct
 
 SPIRAL, PIECEWISE = 0, 1
 LOS_HEADINGS = ("absolute", "cumulative")
+MAX_COORD = 1e4  # m: any reference coordinate (float32 keeps mm resolution up to about 1e4 m)
+MAX_SPEED = 100.0  # m/s: any reference speed set by a TrackConfig field
 
 # The exact test instances (LOS-RT seed 0 and 1..20, Spiral-RT) come from
 # ``jax.random.PRNGKey(seed)``.  The training mixture and the validation set fold
@@ -87,6 +89,15 @@ class TrackConfig:
             raise ValueError(f"los_segment_steps must be an integer >= 1, got {self.los_segment_steps}")
         if self.los_heading not in LOS_HEADINGS:
             raise ValueError(f"los_heading must be one of {LOS_HEADINGS}, got {self.los_heading!r}")
+        if not (math.isfinite(self.los_climb_rate) and abs(self.los_climb_rate) <= MAX_SPEED):
+            raise ValueError(f"los_climb_rate must be a finite number in [-{MAX_SPEED:g}, {MAX_SPEED:g}] "
+                             f"m/s, got {self.los_climb_rate}")  # fmt: skip
+        p = self.los_init_point
+        if len(p) != 3 or not all(math.isfinite(x) and abs(x) <= MAX_COORD for x in p):
+            raise ValueError(f"los_init_point must be 3 finite numbers in [-{MAX_COORD:g}, {MAX_COORD:g}] m, "
+                             f"got {p}")  # fmt: skip
+        if self.los_speed[1] > MAX_SPEED:
+            raise ValueError(f"los_speed must be at most {MAX_SPEED:g}, got {self.los_speed}")
         w = self.train_mix
         if len(w) != 3 or not all(map(math.isfinite, w)) or any(x < 0 for x in w) or sum(w) <= 0:
             raise ValueError(

@@ -41,9 +41,11 @@ _HYPER_RANGES = {
     "gamma": (0.0, True, 1.0, False),
     "tau": (0.0, False, 1.0, True),
     "beta": (0.0, True, 1.0, True),
-    **dict.fromkeys(("lr_actor", "lr_critic", "u_max", "reward_scale", "model_grad_clip"),
-                    (0.0, False, math.inf, False)),
-    **dict.fromkeys(("sigma", "lam", "target_sigma", "target_clip"), (0.0, True, math.inf, False)),
+    # an Adam step of more than the weights' own scale, or rewards scaled past 1e3, only diverge
+    **dict.fromkeys(("lr_actor", "lr_critic"), (0.0, False, 1.0, True)),
+    **dict.fromkeys(("u_max", "reward_scale"), (0.0, False, 1e3, True)),
+    "model_grad_clip": (0.0, False, 1e6, True),
+    **dict.fromkeys(("sigma", "lam", "target_sigma", "target_clip"), (0.0, True, 1e3, True)),
 }  # fmt: skip
 
 
@@ -76,7 +78,7 @@ class TrainConfig:
     # noise), back-propagates Σ γ^k r_k through the simulator into the actor, and stores the
     # H·num_envs transitions for the usual TD3 critic updates.
     model_horizon: int = 0
-    hidden: tuple[int, ...] = (256, 256)
+    hidden: tuple[int, ...] = (256, 256)  # widths of the hidden layers of the actor and of each critic
     critic_arch: str = "mlp"  # "mlp" (the paper's) | "residual" (SimBa-style LayerNorm blocks)
     normalize_obs: bool = False  # running mean/std normalisation of observations (nets' input)
     epochs: int = 50  # progress / eval / checkpoint points

@@ -1,0 +1,115 @@
+"""Fault scenarios of issue 34, re-runnable: corrupt byte ranges of the newest checkpoint
+and of a ``best/`` file, a second writer, and a reader beside an unfinished save.  Prints
+how each ended; docs/reliability.md holds a measured output.
+
+    python benchmarks/reliability.py            # 40 corruptions
+    python benchmarks/reliability.py --quick    # 8
+
+Not covered here (see docs/reliability.md): SIGKILL at N moments (tests/test_cli.py),
+a full disk (needs a small tmpfs, root).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import tempfile
+
+import jax
+import numpy as np
+
+from ttd3_jax import checkpoint as ckpt
+from ttd3_jax import run_state
+
+
+def state(seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    return {"buffer": rng.standard_normal((2048, 64)).astype(np.float32), "step": np.array([seed], np.int32),
+            "actor": {"w": rng.standard_normal((64, 64)).astype(np.float32)}}  # fmt: skip
+
+
+def corrupt_newest(trials: int, rng: np.random.Generator) -> dict:
+    """Random bytes over a random range of a random file of checkpoint 2 (of 1 and 2):
+    does the restore fall back to 1, or load 2's true contents, or load wrong contents?"""
+    out = {"fell back": 0, "loaded intact": 0, "loaded WRONG contents": 0}
+    for i in range(trials):
+        with tempfile.TemporaryDirectory() as run_dir:
+            m = ckpt.manager(run_dir)
+            ckpt.save(m, 1, state(1))
+            ckpt.save(m, 2, state(2))
+            m.close()
+            root = os.path.join(run_dir, "checkpoints", "2")
+            files = sorted(os.path.join(d, f) for d, _, fs in os.walk(root) for f in fs)
+            path = files[rng.integers(len(files))]
+            size = os.path.getsize(path)
+            start = int(rng.integers(max(size, 1)))
+            n = int(min(rng.choice([1, 64, 4096]), max(size - start, 1)))
+            with open(path, "r+b") as fh:
+                fh.seek(start)
+                fh.write(rng.bytes(n))
+            epoch, got, _ = ckpt.restore_newest(run_dir, state(0))
+            pairs = zip(jax.tree.leaves(got), jax.tree.leaves(state(2)), strict=True)
+            same = all(np.array_equal(np.asarray(a), b) for a, b in pairs)
+            key = "fell back" if epoch == 1 else "loaded intact" if same else "loaded WRONG contents"
+            out[key] += 1
+            print(f"  {i:>3} {os.path.relpath(path, root):<40} {n:>5} B at {start:>8}: {key}")
+    return out
+
+
+def corrupt_best(trials: int, rng: np.random.Generator) -> dict:
+    out = {"detected": 0, "loaded intact": 0, "loaded WRONG contents": 0}
+    policy = {"actor": {"w": np.arange(4096, dtype=np.float32)}, "obs_stats": None}
+    with tempfile.TemporaryDirectory() as run_dir:
+        for _ in range(trials):
+            ckpt.save_policy(run_dir, 0, 1, 1.0, policy)
+            path = os.path.join(run_dir, "best", "seed0.msgpack")
+            data = bytearray(open(path, "rb").read())
+            start = int(rng.integers(len(data) - 64))
+            data[start : start + 64] = rng.bytes(64)
+            open(path, "wb").write(bytes(data))
+            try:
+                got = ckpt.load_policy(run_dir, 0, policy)
+                ok = np.array_equal(got["actor"]["w"], policy["actor"]["w"])
+                out["loaded intact" if ok else "loaded WRONG contents"] += 1
+            except ValueError:
+                out["detected"] += 1
+    return out
+
+
+def two_writers_and_a_reader() -> dict:
+    with tempfile.TemporaryDirectory() as run_dir:
+        run_state.acquire(run_dir)
+        try:
+            run_state.acquire(run_dir)
+            second = "ran beside the first"
+        except run_state.RunLocked:
+            second = "refused"
+        run_state.release(run_dir)
+        m = ckpt.manager(run_dir)
+        ckpt.save(m, 1, state(1))
+        m.close()
+        tmp = os.path.join(run_dir, "checkpoints", "2.orbax-checkpoint-tmp-99")
+        os.makedirs(tmp)
+        ckpt.restore_newest(run_dir, state(0))
+        return {
+            "second writer": second,
+            "trainer's unfinished save after a read": os.path.isdir(tmp) and "kept",
+        }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    logging.getLogger("absl").setLevel(logging.ERROR)  # orbax's notes on read-only managers
+    n, rng = (8 if args.quick else 40), np.random.default_rng(args.seed)
+    print(f"corrupting checkpoint 2 of 2 ({n} trials):")
+    print("newest checkpoint:", corrupt_newest(n, rng))
+    print("best/ file (64 random bytes):", corrupt_best(n, rng))
+    print(two_writers_and_a_reader())
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,181 @@
+"""Nothing lost, nothing silently wrong (issue 34): verified checkpoints and selected
+policies, readers that leave checkpoints/ alone, one writer per run, the run's state, and
+memory checked before anything is written."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+
+import numpy as np
+import pytest
+from test_evaluate import fake_run_dir
+from tiny import tiny
+
+from ttd3_jax import checkpoint as ckpt
+from ttd3_jax import memory, run_state, runs, train
+from ttd3_jax import spec as sp
+from ttd3_jax.runner import finished_note
+
+GIB = 2**30
+
+
+def two_checkpoints(tmp_path) -> str:
+    """A run directory with checkpoints 2 and 3 (3 = 2's state), each with its digest."""
+    run_dir = fake_run_dir(tmp_path / "run")
+    state = runs.load_train_state(run_dir).state
+    ckpt.save(ckpt.manager(run_dir), 3, state)
+    return run_dir
+
+
+def data_files(run_dir: str, epoch: int) -> list[str]:
+    root = os.path.join(run_dir, "checkpoints", str(epoch))
+    files = [os.path.join(d, f) for d, _, fs in os.walk(root) for f in fs]
+    return sorted(files, key=os.path.getsize, reverse=True)
+
+
+def test_random_bytes_in_the_newest_checkpoint_fall_back_to_the_one_before(tmp_path):
+    run_dir = two_checkpoints(tmp_path)
+    assert set(ckpt.digests(run_dir)) == {2, 3}
+    path = data_files(run_dir, 3)[0]  # the largest data file
+    size = os.path.getsize(path)
+    with open(path, "r+b") as fh:
+        fh.seek(size // 2)
+        fh.write(np.random.default_rng(0).bytes(min(4096, size - size // 2)))
+    loaded = runs.load_train_state(run_dir)
+    assert loaded.epoch == 2 and [e for e, _ in loaded.skipped] == [3]
+
+
+def test_a_checkpoint_that_loads_but_differs_from_its_digest_is_skipped(tmp_path):
+    run_dir = two_checkpoints(tmp_path)
+    record = ckpt.digests(run_dir)
+    record[3] = "0" * 32  # as if the files had changed without failing to decode
+    with open(os.path.join(run_dir, ckpt.DIGESTS), "w") as fh:
+        json.dump({str(k): v for k, v in record.items()}, fh)
+    loaded = runs.load_train_state(run_dir)
+    assert loaded.epoch == 2 and "do not match the digest" in loaded.skipped[0][1]
+
+
+def test_readers_leave_a_trainers_unfinished_save_alone(tmp_path):
+    run_dir = fake_run_dir(tmp_path / "run")
+    tmp = os.path.join(run_dir, "checkpoints", "3.orbax-checkpoint-tmp-1234")
+    os.makedirs(tmp)
+    before = sorted(os.listdir(os.path.join(run_dir, "checkpoints")))
+    assert runs.load_train_state(run_dir).epoch == 2
+    assert os.path.isdir(tmp) and sorted(os.listdir(os.path.join(run_dir, "checkpoints"))) == before
+
+
+def test_a_damaged_selected_policy_is_detected(tmp_path):
+    like = {"actor": {"w": np.zeros((3, 2), np.float32)}, "obs_stats": None}
+    policy = {"actor": {"w": np.arange(6, dtype=np.float32).reshape(3, 2)}, "obs_stats": None}
+    ckpt.save_policy(str(tmp_path), 7, 4, 1.5, policy)
+    np.testing.assert_array_equal(
+        ckpt.load_policy(str(tmp_path), 7, like)["actor"]["w"], policy["actor"]["w"]
+    )
+    path = tmp_path / "best" / "seed7.msgpack"
+    data = bytearray(path.read_bytes())
+    data[-8:] = np.random.default_rng(1).bytes(8)  # the last weights: still valid msgpack
+    path.write_bytes(bytes(data))
+    with pytest.raises(ckpt.CorruptCheckpoint, match="does not match the digest in best/best.json"):
+        ckpt.load_policy(str(tmp_path), 7, like)
+    with pytest.raises(ValueError, match="no longer kept, so it cannot be rebuilt"):
+        runs.selected_policy(str(tmp_path), 7, 0, like, 4)
+
+
+def dead_pid() -> int:
+    p = subprocess.Popen(["true"])
+    p.wait()
+    return p.pid
+
+
+def test_one_writer_per_run_and_a_stale_lock_is_taken_over(tmp_path):
+    run_dir = str(tmp_path)
+    assert run_state.acquire(run_dir) is None
+    with pytest.raises(
+        run_state.RunLocked, match=rf"being trained by pid {os.getpid()} on .*one writer per run"
+    ):
+        run_state.acquire(run_dir)
+    run_state.release(run_dir)
+    assert run_state.holder(run_dir) is None
+    lock = {"pid": dead_pid(), "host": run_state.socket.gethostname(), "since": "then"}
+    (tmp_path / run_state.LOCK).write_text(json.dumps(lock))
+    note = run_state.acquire(run_dir)
+    assert note == f"took over the lock of pid {lock['pid']} on {lock['host']}, which is no longer running"
+    assert run_state.holder(run_dir)["pid"] == os.getpid()
+    run_state.release(run_dir)
+
+
+def test_the_state_says_failed_with_the_reason_and_running_turns_interrupted(tmp_path):
+    run_dir = str(tmp_path)
+    with pytest.raises(ZeroDivisionError), run_state.writing(run_dir, log=lambda *a: None):
+        assert run_state.state(run_dir)["state"] == "running"
+        1 / 0  # noqa: B018
+    assert run_state.state(run_dir)["reason"].startswith("ZeroDivisionError")
+    assert run_state.holder(run_dir) is None
+    run_state.mark(run_dir, "running")
+    assert run_state.state(run_dir)["state"] == "interrupted"  # nobody holds the lock: it was killed
+
+
+def test_find_run_skips_failed_runs_and_says_so(tmp_path):
+    good = runs.new_run_dir(str(tmp_path), tiny())
+    run_state.mark(good, "finished")
+    bad = runs.new_run_dir(str(tmp_path), tiny(seed=1))
+    run_state.mark(bad, "failed", reason="MemoryError: out of memory")
+    path, note = runs.find_run(str(tmp_path))
+    assert path == good and f"skipped {os.path.basename(bad)} (failed: MemoryError" in note
+
+
+def test_resume_of_a_finished_run_does_nothing(tmp_path):
+    run_dir = runs.new_run_dir(str(tmp_path), tiny())
+    assert finished_note(run_dir, tiny()) is None
+    run_state.mark(run_dir, "finished")
+    assert "finished all 2 epochs (eval.json); nothing to resume" in finished_note(run_dir, tiny())
+
+
+@pytest.mark.parametrize(
+    "argv, field",
+    [
+        (["--hidden", "65536", "65536"], "--hidden 65536 65536"),
+        (["--task.lookahead-k", "1000000000"], "--task.lookahead-k 1000000000"),
+        (["--task.episode-steps", "2000000000"], "--task.episode-steps 2000000000"),
+        (["--updates-per-step", "1000000000"], "--updates-per-step 1000000000"),
+    ],
+)
+def test_the_four_memory_cases_are_refused_with_the_figure_and_the_field(argv, field):
+    _, spec = train.parse(["--total-transitions", "20000", "--epochs", "2", *argv])
+    trainer = sp.trainer_for(spec)
+    with pytest.raises(ValueError) as e:
+        memory.check(spec, trainer.env.obs_size, trainer.env.action_size, free=16 * GIB)
+    assert re.search(
+        rf"the run needs about [\d.e+]+ GiB of memory, .*\({re.escape(field)}\), but only 16 GiB",
+        str(e.value),
+    )
+
+
+def test_presets_fit_and_a_refused_run_writes_nothing(tmp_path, capsys):
+    for name in ("fast", "fast_dpg", "paper"):
+        s = sp.preset(name)
+        t = sp.trainer_for(s)
+        assert memory.check(s, t.env.obs_size, t.env.action_size, free=16 * GIB) < 4 * GIB
+    out = tmp_path / "runs"
+    code = train.main(["--total-transitions", "20000", "--epochs", "2", "--hidden", "65536", "65536",
+                       "--out", str(out), "--compile-cache", "none"])  # fmt: skip
+    assert code == 2 and "--hidden 65536 65536" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_a_full_disk_or_no_memory_ends_in_one_line_with_what_to_do():
+    full = OSError(28, "No space left on device")
+    full.run_dir = "runs/r1"
+    assert train.failure_message(full) == (
+        "the disk is full; free space, then continue with python -m ttd3_jax.train --resume runs/r1"
+    )
+    wrapped = ValueError("orbax: save failed")
+    wrapped.__cause__ = OSError(28, "No space left on device")
+    assert train.failure_message(wrapped).startswith("the disk is full")
+    assert train.failure_message(RuntimeError("RESOURCE_EXHAUSTED: Out of memory")).startswith(
+        "out of memory"
+    )
+    assert train.failure_message(RuntimeError("something else")) is None

@@ -1,0 +1,152 @@
+"""Who writes a run directory, and how its training ended.
+
+``lock.json`` (pid, host, start time) is held by the one process that trains a run (a new
+run or ``--resume``); a second writer is refused with the holder's name, and a lock whose
+process is gone (same host, dead pid) is taken over with a note.  The lock is created with
+its contents in one step (a hard link of a finished file), so no reader sees it half written.
+
+``state.json`` says how the run stands: ``running``, ``stopped`` (after ``stop_after``
+epochs, resumable), ``failed`` (with the reason) or ``finished``.  A ``running`` run whose
+lock holder is gone was killed: it resumes from its newest checkpoint.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import socket
+from contextlib import contextmanager
+
+LOCK = "lock.json"
+STATE = "state.json"
+STATES = ("running", "stopped", "failed", "finished")
+
+
+class RunLocked(ValueError):
+    """Another live process is training this run."""
+
+
+def _now() -> str:
+    return datetime.datetime.now().isoformat(timespec="seconds")
+
+
+def _read(path: str) -> dict | None:
+    try:
+        with open(path) as fh:
+            d = json.load(fh)
+        return d if isinstance(d, dict) else None
+    except (OSError, ValueError):
+        return None
+
+
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this host."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
+def holder(run_dir: str) -> dict | None:
+    """The lock's contents, or ``None`` when the run is not locked."""
+    return _read(os.path.join(run_dir, LOCK))
+
+
+def is_stale(lock: dict | None) -> bool:
+    """A lock that holds nothing readable, or whose process on this host is gone."""
+    if lock is None or not isinstance(lock.get("pid"), int):
+        return True
+    return lock.get("host") == socket.gethostname() and not alive(lock["pid"])
+
+
+def acquire(run_dir: str) -> str | None:
+    """Take ``run_dir``'s lock; returns a note when a stale lock was taken over.  Raises
+    :class:`RunLocked` naming the holder when a live process has it."""
+    path, note = os.path.join(run_dir, LOCK), None
+    tmp = f"{path}.{os.getpid()}.tmp"
+    with open(tmp, "w") as fh:
+        json.dump({"pid": os.getpid(), "host": socket.gethostname(), "since": _now()}, fh)
+    try:
+        for _ in range(3):
+            try:
+                os.link(tmp, path)  # atomic: fails when the lock exists
+                return note
+            except FileExistsError:
+                lock = holder(run_dir)
+                if not is_stale(lock):
+                    raise RunLocked(
+                        f"{run_dir} is being trained by pid {lock['pid']} on {lock.get('host')} (since "
+                        f"{lock.get('since')}; {path}): one writer per run. Wait for it to end or stop it; "
+                        "delete the lock file only if that process is gone"
+                    ) from None
+                who = f"pid {lock['pid']} on {lock.get('host')}" if lock else "an unreadable lock"
+                note = f"took over the lock of {who}, which is no longer running"
+                with _ignore_missing():
+                    os.remove(path)
+        raise RunLocked(f"could not take the lock {path}: other processes keep taking it")
+    finally:
+        os.remove(tmp)
+
+
+@contextmanager
+def _ignore_missing():
+    try:
+        yield
+    except FileNotFoundError:
+        pass
+
+
+def release(run_dir: str) -> None:
+    """Give the lock back (only if this process holds it)."""
+    lock = holder(run_dir)
+    if lock and lock.get("pid") == os.getpid() and lock.get("host") == socket.gethostname():
+        with _ignore_missing():
+            os.remove(os.path.join(run_dir, LOCK))
+
+
+def mark(run_dir: str, state: str, **info) -> None:
+    """Record the run's ``state`` (one of :data:`STATES`) with ``info`` (reason, epoch)."""
+    if state not in STATES:
+        raise ValueError(f"state must be one of {STATES}, got {state!r}")
+    path = os.path.join(run_dir, STATE)
+    with open(path + ".tmp", "w") as fh:
+        json.dump({"state": state, "updated": _now(), **info}, fh)
+    os.replace(path + ".tmp", path)
+
+
+def state(run_dir: str) -> dict:
+    """The run's recorded state (``{"state": "unknown"}`` for runs written before it was
+    kept); a ``running`` run whose lock holder is gone reads ``interrupted``."""
+    d = _read(os.path.join(run_dir, STATE)) or {"state": "unknown"}
+    if d.get("state") == "running" and is_stale(holder(run_dir)):
+        d = {**d, "state": "interrupted"}
+    return d
+
+
+@contextmanager
+def writing(run_dir: str, log=print):
+    """Hold ``run_dir``'s lock while training it: the state reads ``running``, and ``failed``
+    with the reason if the body raises (Ctrl-C included); the lock is released at the end."""
+    note = acquire(run_dir)
+    if note:
+        log(f"note: {note}")
+    try:
+        mark(run_dir, "running", pid=os.getpid())
+        yield
+    except BaseException as e:
+        reason = " ".join(str(e).split())[:300] or type(e).__name__
+        try:
+            mark(run_dir, "failed", reason=f"{type(e).__name__}: {reason}")
+        except OSError:  # a full disk takes the state file too; the lock still goes
+            pass
+        try:
+            e.run_dir = run_dir  # for the CLI's message: what to --resume
+        except AttributeError:
+            pass
+        raise
+    finally:
+        release(run_dir)
