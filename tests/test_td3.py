@@ -17,7 +17,7 @@ from ttd3_jax.td3 import buffer as rb
 from ttd3_jax.td3 import dpg, model_based, networks
 from ttd3_jax.td3 import noise as nz
 from ttd3_jax.td3 import trainer as T
-from ttd3_jax.td3.config import Hyper, TrainConfig, validate_hyper
+from ttd3_jax.td3.config import Hyper, NoiseConfig, TrainConfig, validate_hyper
 from ttd3_jax.td3.losses import actor_loss, critic_loss
 from ttd3_jax.td3.networks import init_params, make_networks, twin_q
 
@@ -69,7 +69,7 @@ def test_hyperparameter_errors(field, value, match):
 @pytest.mark.parametrize("field, value", [("delta_reduce", "max"), ("t_unit", "hour"), ("r_range", "all")])
 def test_noise_config_errors(field, value):
     with pytest.raises(ValueError, match=field):
-        nz.NoiseConfig(**{field: value})
+        NoiseConfig(**{field: value})
 
 
 def test_loop_lengths_and_transitions_run():
@@ -86,32 +86,88 @@ def test_loop_lengths_and_transitions_run():
 
 def test_time_attenuating_sigma_matches_formula():
     hp = Hyper(beta=0.08, lam=0.01, u_max=1.0)
-    cfg = nz.NoiseConfig()
+    cfg = NoiseConfig()
     r = jnp.array([-1.0, -0.5, -0.25, 0.0])
     ns = nz.init(hp, True)
     assert float(ns.sigma) == 1.0  # Alg. 1 starts at u_max
-    out = nz.update(cfg, True, hp, ns, r, n_tr=30_000, n_upd=7, episode_length=3000)
+    out = nz.update(
+        ns, cfg=cfg, time_attenuating=True, hp=hp, rewards=r, n_tr=30_000, n_upd=7, episode_length=3000
+    )
     delta = float(np.sum((r - r.min()) / (r.max() - r.min())))  # 0 + 0.5 + 0.75 + 1
     expected = 0.08 * np.exp(-0.01 * 10.0) + 0.92 * np.exp(-delta)
     np.testing.assert_allclose(float(out.sigma), expected, rtol=1e-6)
-    mean = nz.update(dataclasses.replace(cfg, delta_reduce="mean"), True, hp, ns, r, 30_000, 7, 3000)
+    mean = nz.update(
+        ns,
+        cfg=dataclasses.replace(cfg, delta_reduce="mean"),
+        time_attenuating=True,
+        hp=hp,
+        rewards=r,
+        n_tr=30_000,
+        n_upd=7,
+        episode_length=3000,
+    )
     np.testing.assert_allclose(float(mean.sigma), 0.08 * np.exp(-0.1) + 0.92 * np.exp(-delta / 4), rtol=1e-6)
-    per_step = nz.update(dataclasses.replace(cfg, t_unit="env_step"), True, hp, ns, r, 30_000, 7, 3000)
+    per_step = nz.update(
+        ns,
+        cfg=dataclasses.replace(cfg, t_unit="env_step"),
+        time_attenuating=True,
+        hp=hp,
+        rewards=r,
+        n_tr=30_000,
+        n_upd=7,
+        episode_length=3000,
+    )
     np.testing.assert_allclose(float(per_step.sigma), 0.92 * np.exp(-delta), rtol=1e-5)
-    per_update = nz.update(dataclasses.replace(cfg, t_unit="update"), True, hp, ns, r, 30_000, 7, 3000)
+    per_update = nz.update(
+        ns,
+        cfg=dataclasses.replace(cfg, t_unit="update"),
+        time_attenuating=True,
+        hp=hp,
+        rewards=r,
+        n_tr=30_000,
+        n_upd=7,
+        episode_length=3000,
+    )
     np.testing.assert_allclose(
         float(per_update.sigma), 0.08 * np.exp(-0.07) + 0.92 * np.exp(-delta), rtol=1e-6
     )
 
 
 def test_sigma_kept_when_rewards_are_flat_and_running_range():
-    hp, cfg = Hyper(), nz.NoiseConfig()
+    hp, cfg = Hyper(), NoiseConfig()
     ns = nz.NoiseState(sigma=jnp.float32(0.3), r_min=jnp.float32(jnp.inf), r_max=jnp.float32(-jnp.inf))
-    flat = nz.update(cfg, True, hp, ns, jnp.full(8, -2.0), 1000, 1, 3000)
+    flat = nz.update(
+        ns,
+        cfg=cfg,
+        time_attenuating=True,
+        hp=hp,
+        rewards=jnp.full(8, -2.0),
+        n_tr=1000,
+        n_upd=1,
+        episode_length=3000,
+    )
     assert float(flat.sigma) == pytest.approx(0.3)
     run_cfg = dataclasses.replace(cfg, r_range="running")
-    s1 = nz.update(run_cfg, True, hp, ns, jnp.array([-4.0, 0.0]), 0, 1, 3000)
-    s2 = nz.update(run_cfg, True, hp, s1, jnp.array([-1.0, -1.0]), 0, 2, 3000)
+    s1 = nz.update(
+        ns,
+        cfg=run_cfg,
+        time_attenuating=True,
+        hp=hp,
+        rewards=jnp.array([-4.0, 0.0]),
+        n_tr=0,
+        n_upd=1,
+        episode_length=3000,
+    )
+    s2 = nz.update(
+        s1,
+        cfg=run_cfg,
+        time_attenuating=True,
+        hp=hp,
+        rewards=jnp.array([-1.0, -1.0]),
+        n_tr=0,
+        n_upd=2,
+        episode_length=3000,
+    )
     assert float(s2.r_min) == -4.0 and float(s2.r_max) == 0.0
     # a flat batch is still normalised by the running range: δ = 2 * 0.75
     np.testing.assert_allclose(float(s2.sigma), 0.08 + 0.92 * np.exp(-1.5), rtol=1e-6)
@@ -122,9 +178,18 @@ def test_td3_keeps_sigma_constant_and_sigma_as_variance():
     ns = nz.init(hp, False)
     assert float(ns.sigma) == pytest.approx(0.1)
     assert float(
-        nz.update(nz.NoiseConfig(), False, hp, ns, jnp.arange(4.0), 10, 1, 10).sigma
+        nz.update(
+            ns,
+            cfg=NoiseConfig(),
+            time_attenuating=False,
+            hp=hp,
+            rewards=jnp.arange(4.0),
+            n_tr=10,
+            n_upd=1,
+            episode_length=10,
+        ).sigma
     ) == pytest.approx(0.1)
-    assert float(nz.std(nz.NoiseConfig(sigma_is_variance=True), jnp.float32(0.04))) == pytest.approx(0.2)
+    assert float(nz.std(NoiseConfig(sigma_is_variance=True), jnp.float32(0.04))) == pytest.approx(0.2)
     assert TrainConfig(algo="td3").time_attenuating is False and TrainConfig().time_attenuating
 
 

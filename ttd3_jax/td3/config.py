@@ -11,7 +11,6 @@ import math
 from flax import struct
 
 from ttd3_jax.td3.networks import CRITIC_ARCHS
-from ttd3_jax.td3.noise import NoiseConfig
 
 ALGOS = ("ttd3", "td3")
 TARGET_NOISES = ("fixed", "shared_sigma")
@@ -59,6 +58,30 @@ def validate_hyper(hp: Hyper) -> None:
         if not ok:
             span = f"{'[' if lo_in else '('}{lo:g}, {hi:g}{']' if hi_in else ')'}"
             raise ValueError(f"hp.{f.name} must be a finite number in {span}, got {v!r}")
+
+
+DELTA_REDUCES = ("sum", "mean")
+R_RANGES = ("batch", "running")
+T_UNITS = ("episode", "env_step", "update")
+
+
+@dataclasses.dataclass(frozen=True)
+class NoiseConfig:
+    """Static readings of the T-TD3 schedule (spec A1-A3, A5; numeric values live in ``Hyper``)."""
+
+    delta_reduce: str = "sum"  # A1
+    r_range: str = "batch"  # A2: min/max of the minibatch, or running extremes
+    t_unit: str = "episode"  # A3: t = transitions / episode_length, transitions, or updates
+    sigma_is_variance: bool = False  # A5: N(0, σ) read as variance σ (std √σ)
+
+    def __post_init__(self):
+        for name, allowed in (
+            ("delta_reduce", DELTA_REDUCES),
+            ("r_range", R_RANGES),
+            ("t_unit", T_UNITS),
+        ):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"NoiseConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -154,8 +154,8 @@ def critic_update(s: Setup, ts: TrainState, hp: Hyper, key: jax.Array):
     )  # fmt: skip
     critic, critic_opt = adam_step(s, ts.critic, ts.critic_opt, g, hp.lr_critic)
     n_upd = ts.n_upd + 1
-    noise = nz.update(c.noise, c.time_attenuating, hp, ts.noise, batch.reward, ts.n_tr, n_upd,
-                      s.env.episode_length)  # fmt: skip
+    noise = nz.update(ts.noise, cfg=c.noise, time_attenuating=c.time_attenuating, hp=hp, rewards=batch.reward,
+                      n_tr=ts.n_tr, n_upd=n_upd, episode_length=s.env.episode_length)  # fmt: skip
     return ts.replace(critic=critic, critic_opt=critic_opt, noise=noise, n_upd=n_upd), batch, loss, q_mean
 
 

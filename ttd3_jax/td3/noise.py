@@ -9,39 +9,17 @@ rewards r_j,
 where t counts episode-equivalents of collected transitions (``t_unit``), and σ is
 kept unchanged when r_max − r_min ≤ 1e-8.  TD3 is the same code with σ ≡ ``hp.sigma``
 (``time_attenuating=False``, ``TrainConfig.algo = "td3"``).  ``hp`` is the trainer's
-:class:`~ttd3_jax.td3.config.Hyper`.
+:class:`~ttd3_jax.td3.config.Hyper`; the static readings are
+:class:`~ttd3_jax.td3.config.NoiseConfig`.
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
-DELTA_REDUCES = ("sum", "mean")
-R_RANGES = ("batch", "running")
-T_UNITS = ("episode", "env_step", "update")
-
-
-@dataclasses.dataclass(frozen=True)
-class NoiseConfig:
-    """Static readings of the T-TD3 schedule (spec A1-A3, A5; numeric values live in ``Hyper``)."""
-
-    delta_reduce: str = "sum"  # A1
-    r_range: str = "batch"  # A2: min/max of the minibatch, or running extremes
-    t_unit: str = "episode"  # A3: t = transitions / episode_length, transitions, or updates
-    sigma_is_variance: bool = False  # A5: N(0, σ) read as variance σ (std √σ)
-
-    def __post_init__(self):
-        for name, allowed in (
-            ("delta_reduce", DELTA_REDUCES),
-            ("r_range", R_RANGES),
-            ("t_unit", T_UNITS),
-        ):
-            if getattr(self, name) not in allowed:
-                raise ValueError(f"NoiseConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
+from ttd3_jax.td3.config import Hyper, NoiseConfig
 
 
 @struct.dataclass
@@ -51,7 +29,7 @@ class NoiseState:
     r_max: jax.Array
 
 
-def init(hp, time_attenuating: bool) -> NoiseState:
+def init(hp: Hyper, time_attenuating: bool) -> NoiseState:
     """σ starts at u_max for T-TD3 (Alg. 1), at ``hp.sigma`` for TD3."""
     sigma = hp.u_max if time_attenuating else hp.sigma
     f = jnp.float32
@@ -60,8 +38,8 @@ def init(hp, time_attenuating: bool) -> NoiseState:
     )
 
 
-def update(cfg: NoiseConfig, time_attenuating: bool, hp, ns: NoiseState, rewards: jax.Array, n_tr, n_upd,
-           episode_length: int) -> NoiseState:  # fmt: skip
+def update(ns: NoiseState, *, cfg: NoiseConfig, time_attenuating: bool, hp: Hyper, rewards: jax.Array,
+           n_tr: jax.Array, n_upd: jax.Array, episode_length: int) -> NoiseState:  # fmt: skip
     """σ after one critic update on a minibatch with ``rewards`` (B,).
 
     ``n_tr``: transitions collected so far; ``n_upd``: updates done; ``episode_length``:
