@@ -49,6 +49,17 @@ def compiled_epoch(case: str, quick: bool):
     return s, jax.jit(epoch).lower(ts, s.hp).compile(), ts
 
 
+def matmul_kernels(hlo: str) -> set[str]:
+    """Kernels that multiply matrices: ``dot`` instructions and fusions (YNNPACK's among
+    them) whose computation holds one."""
+    bodies = dict(re.findall(r"\n(%[\w.\-]+) [^\n]*\{\n(.*?)\n\}", hlo, re.S))
+    out = set(re.findall(r"\n\s*(?:ROOT )?%?([\w.\-]+) = \S+ dot\(", hlo))
+    for name, comp in re.findall(r"(%[\w.\-]+) = [^\n]* fusion\([^\n]*calls=(%[\w.\-]+)", hlo):
+        if " dot(" in bodies.get(comp, ""):
+            out.add(name[1:])
+    return out
+
+
 def trace_events(compiled, *args) -> list[dict]:
     jax.block_until_ready(compiled(*args))
     with tempfile.TemporaryDirectory() as d:
@@ -71,7 +82,7 @@ def main(argv=None):
     hlo = compiled.as_text()
     if args.hlo:
         open(args.hlo, "w").write(hlo)
-    contents = kernel_contents(hlo)
+    contents, mm = kernel_contents(hlo), matmul_kernels(hlo)
     ops = dict(re.findall(r"\n\s*(?:ROOT )?%?([\w.\-]+) = \S+ ([a-z\-]+)\(", hlo))
     total, count = collections.Counter(), collections.Counter()
     for e in trace_events(compiled, ts, s.hp):
@@ -84,12 +95,11 @@ def main(argv=None):
     print(f"case={args.case} seeds={s.num_seeds} updates/seed={n_upd} device={jax.devices()[0].platform}")
     print(f"{'kernel':<36} {'us/upd':>8} {'share':>6} {'runs/upd':>8}  op / contains")
     for name, us in total.most_common(args.top):
-        what = contents.get(name) or ops.get(name, "")
+        what = ("matmul " if name in mm else "") + (contents.get(name) or ops.get(name, ""))
         print(f"{name[:36]:<36} {us / n_upd:>8.1f} {us / wall:>6.1%} {count[name] / n_upd:>8.2f}  {what}")
-    by_op = collections.Counter()
-    for name, us in total.items():
-        by_op[ops.get(name, "?")] += us
-    print("by op: " + ", ".join(f"{op} {us / wall:.1%}" for op, us in by_op.most_common(8)))
+    leaf = {n: us for n, us in total.items() if not n.startswith(("while", "cond", "call"))}  # not loops
+    mm_us = sum(us for n, us in leaf.items() if n in mm)
+    print(f"matmuls: {mm_us / sum(leaf.values()):.1%} of the kernels' time (loops and branches left out)")
     print(f"{len(total)} kernels, {wall / n_upd:.0f} us per update in all (profiled)")
 
 
