@@ -106,12 +106,14 @@ class Local:
 class Worker:
     """The same interface as :class:`Local`, served by ``script --worker`` under ``python``."""
 
-    def __init__(self, python: str, script: str, name: str):
+    def __init__(self, python: str, script: str, name: str, path_first: str | None = None):
+        """``path_first``: a directory put before the repo on the worker's ``PYTHONPATH`` (a
+        ``ttd3_jax`` of another commit)."""
         self.python, self.name, self.where = python, name, f"worker:{name}"
         self.log = tempfile.NamedTemporaryFile("w+", prefix=f"peer-{name}-", suffix=".log", delete=False)
         # the repo on the path (ttd3_jax even where the peer's venv lacks it); a scratch working
         # directory, since MuJoCo (crazyflow) writes MUJOCO_LOG.TXT into it
-        path = os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)
+        path = os.pathsep.join(p for p in (path_first, str(REPO), os.environ.get("PYTHONPATH", "")) if p)
         env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": path}
         self.scratch = tempfile.TemporaryDirectory(prefix=f"peer-{name}-")
         self.proc = subprocess.Popen(

@@ -11,7 +11,7 @@ import re
 import pytest
 from tiny import TINY_CLI, tiny
 
-from ttd3_jax import evaluate, export, runs, train
+from ttd3_jax import evaluate, export, run_state, runs, train
 from ttd3_jax import spec as sp
 from ttd3_jax.sim import custom_tracks as ct
 
@@ -181,10 +181,14 @@ def test_help_puts_each_option_under_its_own_text(capsys):
 
 
 def test_resume_takes_an_out_directory_like_evaluate_and_export(tmp_path, capsys):
-    runs.new_run_dir(str(tmp_path), tiny())  # a run without a checkpoint under the --out folder
-    err = refused(train.main, ["--resume", str(tmp_path)], capsys)
-    assert "holds no checkpoint" in err or "starts over" in err
-    assert "not a ttd3_jax run directory" not in err
+    """``--resume OUT`` resolves a training --out folder to its newest run (here a finished
+    one, which it names and leaves alone, without compiling)."""
+    run_dir = runs.new_run_dir(str(tmp_path), tiny())
+    run_state.mark(run_dir, "finished", epoch=2)
+    assert train.main(["--resume", str(tmp_path)]) == 0
+    out = capsys.readouterr()
+    assert f"{run_dir} finished all 2 epochs" in out.out + out.err
+    assert "not a ttd3_jax run directory" not in out.err and "Traceback" not in out.err
 
 
 def test_tiny_cli_still_parses():
