@@ -27,6 +27,9 @@ Each line is ``name sha256-prefix``:
   train_*     the whole train state after init + one epoch of the ``fast`` / ``fast_dpg``
               presets, run exactly as ``python -m ttd3_jax.train`` runs them
               (``sharding.runner_fns``), and that state's evaluation metrics
+  small_*     (``--small``) init + one epoch of small versions of the ``paper`` (T-TD3, and
+              TD3 with 3 seeds), ``fast_model_free`` and ``mujoco`` presets: not in the
+              reference files; compare the output of two runs
 """
 
 from __future__ import annotations
@@ -104,6 +107,28 @@ def train_fingerprint(name: str):
     return digest((ts, m)), digest(eval_fn(ts))
 
 
+def small_specs() -> dict:
+    """Every preset at a few epochs' size (``--small``): init + one epoch each, for checking
+    a change against presets the reference lines do not cover (compare two runs' output)."""
+    paper = dict(total_transitions=2000 + 2 * 50 * 20, warmup_transitions=2000, epochs=2, buffer_size=10000)
+    return {
+        "small_paper": preset("paper", **paper),
+        "small_paper_td3_3seeds": preset("paper", algo="td3", num_seeds=3, **paper),
+        "small_fast_model_free": preset(
+            "fast_model_free", total_transitions=3584, warmup_transitions=2560, epochs=2, buffer_size=6400
+        ),
+        "small_mujoco": preset(
+            "mujoco", total_transitions=1200, warmup_transitions=1000, epochs=2, buffer_size=5000
+        ),  # fmt: skip
+    }
+
+
+def small_fingerprint(spec) -> str:
+    keys = seed_keys(spec.seed, spec.num_seeds)
+    init_fn, epoch_fn, _, _ = sharding.runner_fns(trainer_for(spec), keys, spec.hp)
+    return digest(epoch_fn(init_fn(keys, spec.hp), spec.hp))
+
+
 def isa() -> str:
     """``", AVX-512"`` where XLA:CPU may use it (its results' last bits differ), else ``""``.
 
@@ -125,6 +150,7 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="env rollouts only")
     ap.add_argument("--train", nargs="*", default=["fast", "fast_dpg"], help="training presets to run")
     ap.add_argument("--compare", default=None, help="reference file of lines (see above)")
+    ap.add_argument("--small", action="store_true", help="also init + one epoch of every preset, small")
     args = ap.parse_args(argv)
     want, header = {}, f"# jax {jax.__version__}, {device_description()}{isa()}"
     if args.compare:
@@ -144,6 +170,9 @@ def main(argv=None):
             got[f"train_{name}"], got[f"train_{name}_eval"] = train_fingerprint(name)
             print(f"train_{name}", got[f"train_{name}"], flush=True)
             print(f"train_{name}_eval", got[f"train_{name}_eval"], flush=True)
+    for name, spec in (small_specs() if args.small else {}).items():
+        got[name] = small_fingerprint(spec)
+        print(name, got[name], flush=True)
     if args.compare:
         differ = sorted(k for k in got if k in want and got[k] != want[k])
         print(f"{len(differ)} of {sum(k in want for k in got)} lines differ from {args.compare}", *differ)
