@@ -103,7 +103,7 @@ def test_one_epoch_with_every_option_trains_and_stays_finite():
     assert all(np.isfinite(float(m[k])) for k in ("critic_loss", "actor_loss", "q_mean"))
 
 
-def test_every_direction_builds_and_the_preset_is_the_best_one():
+def test_every_direction_builds_and_fast_model_free_is_the_memory_privileged_direction():
     import importlib.util
     import os
 

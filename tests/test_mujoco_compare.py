@@ -162,18 +162,3 @@ def test_a_run_short_only_of_the_protocols_steps_says_its_share(tmp_path):
     text = mc.budget_markdown(mc.budgets(out))
     row = "| hopper | TD3 | 300000 | 3 | 1 x 1 | 25000 | 5000 (10) | mjx | yes | **no: 30 % of its steps** |"
     assert row in text
-
-
-def test_committed_runs_load_with_their_budgets():
-    """results/mujoco/runs/*/*/config.json are run specs (ttd3_jax.spec.to_dict) that load,
-    with the budgets docs/results.md states: steps, warm-up, evaluation interval."""
-    out = os.path.join(HERE, "..", "results", "mujoco")
-    b = {(r["task"], r["algo"]): r for r in mc.budgets(out)}
-    assert len(b) == 8 and all(r["finished"] and not r["protocol"] for r in b.values())
-    budget = {"ant": (15000, 5000, 2500), "walker2d": (15000, 5000, 2500), "hopper": (300000, 25000, 5000),
-              "inverted_double_pendulum": (300000, 25000, 5000)}  # fmt: skip
-    for (task, _), r in b.items():
-        assert (r["steps"], r["warmup"], r["eval_every"]) == budget[task], task
-        assert (r["seeds"], r["num_envs"], r["updates_per_step"], r["eval_episodes"], r["backend"]) == (
-            3, 1, 1, 10, "mjx")  # fmt: skip
-    assert mc.protocol_label(b["inverted_double_pendulum", "td3"]) == "**no: 30 % of its steps**"
