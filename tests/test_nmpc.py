@@ -184,7 +184,7 @@ def test_registered_in_evaluate():
         (dict(horizon=0), r"horizon must be an integer in \[1, 500\]"),
         (dict(horizon=2.5), "horizon"),
         (dict(horizon=True), "horizon"),
-        (dict(dt_node=0.0), r"dt_node must be a number in \(0.0, 1.0\]"),
+        (dict(dt_node=0.0), r"dt_node must be a finite number in \(0, 1\], got 0.0"),
         (dict(dt_node=float("nan")), "dt_node"),
         (dict(w_pos=(200.0, 200.0)), "w_pos must be 3 finite numbers > 0"),
         (dict(w_pos=(200.0, 0.0, 500.0)), "w_pos"),

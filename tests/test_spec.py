@@ -64,10 +64,10 @@ def test_brax_settings_errors():
 @pytest.mark.parametrize(
     "fields, match",
     [
-        (dict(e_max="big"), r"EnvConfig.e_max must be a finite number, got 'big' \(str\)"),
-        (dict(e_max=-1.0), "EnvConfig.e_max must be > 0"),
+        (dict(e_max="big"), r"EnvConfig.e_max must be a finite number > 0, got 'big'"),
+        (dict(e_max=-1.0), r"EnvConfig.e_max must be a finite number > 0, got -1.0"),
         (dict(obs_frame="heading"), r"obs_frame must be one of \('world', 'track'\)"),
-        (dict(crash_penalty=-1.0), "crash_penalty must be >= 0 or None"),
+        (dict(crash_penalty=-1.0), r"crash_penalty must be a finite number >= 0 or None, got -1.0"),
         (dict(terminate="no"), "terminate must be true or false"),
         (dict(episode_steps=3001, action_repeat=10), "multiple of action_repeat"),
         (dict(quad=QuadParams(mass=0.0)), "QuadParams.mass must be > 0"),

@@ -12,7 +12,7 @@ from typing import Annotated
 import dacite
 import tyro
 
-from ttd3_jax import envs
+from ttd3_jax import checks, envs
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.td3.buffer import transition_bytes
 from ttd3_jax.td3.config import Hyper, TrainConfig, validate_hyper
@@ -46,12 +46,9 @@ class BraxSettings:
     eval_episodes: int = 10  # deterministic episodes per evaluation
 
     def __post_init__(self):
-        if self.backend not in envs.BACKENDS:
-            raise ValueError(f"brax.backend must be one of {envs.BACKENDS}, got {self.backend!r}")
+        checks.one_of("brax.backend", self.backend, envs.BACKENDS)
         for name in ("episode_length", "eval_episodes"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"brax.{name} must be an integer >= 1, got {v!r}")
+            checks.integer(f"brax.{name}", getattr(self, name), 1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,10 +66,8 @@ class RunSpec:
     def __post_init__(self):
         if self.env != QUADROTOR and self.env not in envs.BRAX_ENVS:
             raise ValueError(f"env must be {QUADROTOR!r} or one of {envs.BRAX_ENVS}, got {self.env!r}")
-        for name, lo in (("seed", 0), ("num_seeds", 1)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-                raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+        checks.integer("num_seeds", self.num_seeds, 1)
+        checks.integer("seed", self.seed, 0)
         if self.seed + self.num_seeds > SEED_LIMIT:
             raise ValueError(
                 f"seed must be an integer in [0, {SEED_LIMIT - self.num_seeds}] (seeds seed .. seed + "
@@ -84,8 +79,7 @@ class RunSpec:
             ("task", EnvConfig),
             ("brax", BraxSettings),
         ):
-            if not isinstance(v := getattr(self, name), kind):
-                raise ValueError(f"{name} must be a {kind.__name__}, got {type(v).__name__}")
+            checks.instance(name, getattr(self, name), kind)
         validate_hyper(self.hp)
         if self.train.model_horizon > 0 and self.env != QUADROTOR:
             raise ValueError(

@@ -46,6 +46,7 @@ from flax import struct
 from jax.flatten_util import ravel_pytree
 from jax.scipy.linalg import cho_solve
 
+from ttd3_jax import checks
 from ttd3_jax.control.closed_loop import Controller
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.dynamics import QuadParams, QuadState, quat_conj, quat_mul, rk4_step
@@ -80,19 +81,16 @@ class NMPCConfig:
 
     def __post_init__(self):
         for name, hi in _INTEGERS.items():
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi:
-                raise ValueError(f"NMPCConfig.{name} must be an integer in [1, {hi}], got {v!r}")
+            checks.integer(f"NMPCConfig.{name}", getattr(self, name), 1, hi)
         for name, hi in _NUMBERS.items():
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= hi:
-                raise ValueError(f"NMPCConfig.{name} must be a number in (0.0, {hi}], got {v!r}")
+            checks.number(f"NMPCConfig.{name}", getattr(self, name), 0, hi, lo_open=True)
         for name, positive in _WEIGHTS.items():
             v, n, sign = getattr(self, name), 4 if name == "w_input" else 3, "> 0" if positive else ">= 0"
-            ok = isinstance(v, (tuple, list)) and len(v) == n
-            ok = ok and all(isinstance(x, (int, float)) and math.isfinite(x) and x >= 0 for x in v)
+            ok = (
+                isinstance(v, tuple | list) and len(v) == n and all(checks.is_number(x) and x >= 0 for x in v)
+            )
             if not ok or (positive and min(v) <= 0):
-                raise ValueError(f"NMPCConfig.{name} must be {n} finite numbers {sign}, got {v!r}")
+                checks.fail(f"NMPCConfig.{name}", f"{n} finite numbers {sign}", v)
         if not isinstance(self.line_search, bool):
             raise ValueError(f"NMPCConfig.line_search must be True or False, got {self.line_search!r}")
 

@@ -9,6 +9,7 @@ import dataclasses
 import math
 import os
 
+from ttd3_jax import checks
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.dynamics import QuadParams, validate_params
 
@@ -133,45 +134,30 @@ def error_cost_value(c: EnvConfig, e: float) -> float:
     return e if e * e <= 1 else e * e
 
 
-def _number(c: EnvConfig, name: str) -> float:
-    v = getattr(c, name)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise ValueError(f"EnvConfig.{name} must be a finite number, got {v!r} ({type(v).__name__})")
-    return v
-
-
 def _validate(c: EnvConfig) -> None:
     """Raise ``ValueError`` naming the bad field, its value and what is allowed."""
-    for name in ("dt", "e_max", "wind_tau", "rho1", "err_scale", "memory_tau"):
-        if _number(c, name) <= 0:
-            raise ValueError(f"EnvConfig.{name} must be > 0, got {getattr(c, name)!r}")
-    if c.dt > DT_MAX:
-        raise ValueError(
-            f"EnvConfig.dt must be in (0, {DT_MAX:g}] s (the RK4 physics step; the paper's is 0.001 s, "
-            f"control steps are longer through action_repeat), got {c.dt!r}"
-        )
+    f = lambda name: f"EnvConfig.{name}"  # noqa: E731
+    for name in ("e_max", "wind_tau", "rho1", "err_scale", "memory_tau"):
+        checks.number(f(name), getattr(c, name), 0, lo_open=True)
+    checks.number(f("dt"), c.dt, 0, DT_MAX, lo_open=True,
+                  unit=" s (the RK4 physics step; the paper's is 0.001 s, control steps are longer "
+                       "through action_repeat)")  # fmt: skip
     for name in ("episode_steps", "action_repeat", "rk4_substeps", "lookahead_k"):
-        v = getattr(c, name)
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ValueError(f"EnvConfig.{name} must be an integer >= 1, got {v!r}")
+        checks.integer(f(name), getattr(c, name), 1)
     for name in ("rho2", "init_pos", "init_vel", "init_tilt_deg", "init_yaw_deg", "wind_sigma",
                  "obs_noise_pos", "obs_noise_vel", "obs_noise_quat", "los_seed"):  # fmt: skip
-        if _number(c, name) < 0:
-            raise ValueError(f"EnvConfig.{name} must be >= 0, got {getattr(c, name)!r}")
-    if c.crash_penalty is not None and _number(c, "crash_penalty") < 0:
-        raise ValueError(f"EnvConfig.crash_penalty must be >= 0 or None, got {c.crash_penalty!r}")
-    if c.thrust_map_mass is not None and _number(c, "thrust_map_mass") <= 0:
-        raise ValueError(f"EnvConfig.thrust_map_mass must be > 0 or None, got {c.thrust_map_mass!r}")
-    if isinstance(c.action_delay, bool) or c.action_delay not in (0, 1):
-        raise ValueError(f"EnvConfig.action_delay must be 0 or 1 (control steps), got {c.action_delay!r}")
+        checks.number(f(name), getattr(c, name), 0)
+    if c.crash_penalty is not None:
+        checks.number(f("crash_penalty"), c.crash_penalty, 0, unit=" or None")
+    if c.thrust_map_mass is not None:
+        checks.number(f("thrust_map_mass"), c.thrust_map_mass, 0, lo_open=True, unit=" or None")
+    checks.one_of(f("action_delay"), c.action_delay, (0, 1))
     for name, allowed in (("err_ref", ERR_REFS), ("err_cost", ERR_COSTS), ("obs_frame", OBS_FRAMES),
                           ("track", TRACK_MODES)):  # fmt: skip
-        if getattr(c, name) not in allowed:
-            raise ValueError(f"EnvConfig.{name} must be one of {allowed}, got {getattr(c, name)!r}")
+        checks.one_of(f(name), getattr(c, name), allowed)
     for name in ("renormalize", "canonical_q_obs", "hover_centered_thrust", "effort_hover_relative",
                  "terminate", "randomize_init", "obs_memory", "obs_privileged"):  # fmt: skip
-        if not isinstance(getattr(c, name), bool):
-            raise ValueError(f"EnvConfig.{name} must be true or false, got {getattr(c, name)!r}")
+        checks.boolean(f(name), getattr(c, name))
     if c.obs_memory and c.action_delay:
         raise ValueError(
             "EnvConfig.obs_memory needs action_delay 0 (the delayed env keeps its own last action)"
@@ -182,19 +168,15 @@ def _validate(c: EnvConfig) -> None:
             f"({c.action_repeat})"
         )
     w = c.effort_weights
-    if len(w) != 4 or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not 0 <= x < math.inf
-                          for x in w):  # fmt: skip
-        raise ValueError(f"EnvConfig.effort_weights must be 4 finite numbers >= 0, got {w!r}")
-    if not isinstance(c.quad, QuadParams):
-        raise ValueError(f"EnvConfig.quad must be a QuadParams, got {type(c.quad).__name__}")
+    if len(w) != 4 or not all(checks.is_number(x) and x >= 0 for x in w):
+        checks.fail("EnvConfig.effort_weights", "4 finite numbers >= 0", w)
+    checks.instance("EnvConfig.quad", c.quad, QuadParams)
     validate_params(c.quad)
     if not all(isinstance(p, str) and os.path.isfile(p) for p in c.train_tracks):
         bad = next(p for p in c.train_tracks if not (isinstance(p, str) and os.path.isfile(p)))
         raise ValueError(f"EnvConfig.train_tracks: {bad!r} is not a file; allowed: CSV track files")
-    if not 0 < _number(c, "train_tracks_weight") <= 1:
-        raise ValueError(f"EnvConfig.train_tracks_weight must be in (0, 1], got {c.train_tracks_weight!r}")
-    if not isinstance(c.tracks, tr.TrackConfig):
-        raise ValueError(f"EnvConfig.tracks must be a TrackConfig, got {type(c.tracks).__name__}")
+    checks.number("EnvConfig.train_tracks_weight", c.train_tracks_weight, 0, 1, lo_open=True)
+    checks.instance("EnvConfig.tracks", c.tracks, tr.TrackConfig)
 
 
 def make_config(preset: str = "paper", **overrides) -> EnvConfig:

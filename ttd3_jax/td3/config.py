@@ -6,10 +6,10 @@ the program takes as an argument, so a sweep over them is a ``vmap`` of one prog
 from __future__ import annotations
 
 import dataclasses
-import math
 
 from flax import struct
 
+from ttd3_jax import checks
 from ttd3_jax.td3.networks import CRITIC_ARCHS
 
 ALGOS = ("ttd3", "td3")
@@ -52,12 +52,8 @@ def validate_hyper(hp: Hyper) -> None:
     """Raise ``ValueError`` naming a field of ``hp`` that is not a finite number in range
     (for a run's own ``hp``; a sweep's arrays of values are the caller's to check)."""
     for f in dataclasses.fields(hp):
-        v, (lo, lo_in, hi, hi_in) = getattr(hp, f.name), _HYPER_RANGES[f.name]
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-        ok = ok and (v >= lo if lo_in else v > lo) and (v <= hi if hi_in else v < hi)
-        if not ok:
-            span = f"{'[' if lo_in else '('}{lo:g}, {hi:g}{']' if hi_in else ')'}"
-            raise ValueError(f"hp.{f.name} must be a finite number in {span}, got {v!r}")
+        lo, lo_in, hi, hi_in = _HYPER_RANGES[f.name]
+        checks.number(f"hp.{f.name}", getattr(hp, f.name), lo, hi, lo_open=not lo_in, hi_open=not hi_in)
 
 
 DELTA_REDUCES = ("sum", "mean")
@@ -75,13 +71,9 @@ class NoiseConfig:
     sigma_is_variance: bool = False  # A5: N(0, σ) read as variance σ (std √σ)
 
     def __post_init__(self):
-        for name, allowed in (
-            ("delta_reduce", DELTA_REDUCES),
-            ("r_range", R_RANGES),
-            ("t_unit", T_UNITS),
-        ):
-            if getattr(self, name) not in allowed:
-                raise ValueError(f"NoiseConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
+        for name, allowed in (("delta_reduce", DELTA_REDUCES), ("r_range", R_RANGES), ("t_unit", T_UNITS)):
+            checks.one_of(f"NoiseConfig.{name}", getattr(self, name), allowed)
+        checks.boolean("NoiseConfig.sigma_is_variance", self.sigma_is_variance)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -144,33 +136,19 @@ class TrainConfig:
         ) * self.num_envs
 
 
-def _integer(c: TrainConfig, name: str, lo: int, hi: int = MAX_TRANSITIONS) -> None:
-    v = getattr(c, name)
-    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-        raise ValueError(f"{name} must be an integer in [{lo}, {hi:,}], got {v!r}")
-
-
 def _validate(c: TrainConfig) -> None:
     """Raise ``ValueError`` naming the bad field; runs before anything is compiled."""
-    if c.algo not in ALGOS:
-        raise ValueError(f"algo must be one of {ALGOS}, got {c.algo!r}")
-    if c.critic_arch not in CRITIC_ARCHS:
-        raise ValueError(f"critic_arch must be one of {CRITIC_ARCHS}, got {c.critic_arch!r}")
-    if c.target_noise not in TARGET_NOISES:
-        raise ValueError(f"target_noise must be one of {TARGET_NOISES}, got {c.target_noise!r}")
+    for name, allowed in (("algo", ALGOS), ("critic_arch", CRITIC_ARCHS), ("target_noise", TARGET_NOISES)):
+        checks.one_of(name, getattr(c, name), allowed)
     for name in ("num_envs", "total_transitions", "buffer_size", "batch_size", "updates_per_step",
                  "policy_delay", "epochs"):  # fmt: skip
-        _integer(c, name, 1)
-    _integer(c, "model_horizon", 0, 100_000)
-    _integer(c, "warmup_transitions", 0)
-    if not isinstance(c.normalize_obs, bool):
-        raise ValueError(f"normalize_obs must be true or false, got {c.normalize_obs!r}")
-    if not isinstance(c.noise, NoiseConfig):
-        raise ValueError(f"noise must be a NoiseConfig, got {type(c.noise).__name__}")
-    if len(c.hidden) < 1 or not all(
-        isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in c.hidden
-    ):
-        raise ValueError(f"hidden must be one or more layer widths >= 1, got {c.hidden!r}")
+        checks.integer(name, getattr(c, name), 1, MAX_TRANSITIONS)
+    checks.integer("model_horizon", c.model_horizon, 0, 100_000)
+    checks.integer("warmup_transitions", c.warmup_transitions, 0, MAX_TRANSITIONS)
+    checks.boolean("normalize_obs", c.normalize_obs)
+    checks.instance("noise", c.noise, NoiseConfig)
+    if len(c.hidden) < 1 or not all(checks.is_integer(h) and h >= 1 for h in c.hidden):
+        checks.fail("hidden", "one or more layer widths >= 1", c.hidden)
     if c.batch_size > c.buffer_size:
         raise ValueError(f"batch_size ({c.batch_size}) must be <= buffer_size ({c.buffer_size})")
     if c.warmup_transitions < c.batch_size:
