@@ -90,6 +90,24 @@ DIRECTIONS = {
         {"critic_arch": "residual"},
         {},
     ),
+    "n_step_3": (
+        "critic targets from 3-step returns (FastTD3's n), cut at episode ends, bootstrapped at truncation",
+        {},
+        {"n_step": 3},
+        {},
+    ),
+    "fast_dpg_1khz": (
+        "the preset at the paper's 1 kHz control (action_repeat 1): the critics resolve an action least",
+        {"action_repeat": 1},
+        {},
+        {},
+    ),
+    "n_step_3_1khz": (
+        "n_step_3 at the paper's 1 kHz control (action_repeat 1)",
+        {"action_repeat": 1},
+        {"n_step": 3},
+        {},
+    ),
     "gamma_0.95": (
         "discount 0.95 (0.2 s horizon at 10 ms): a smaller Q, its fitting error smaller beside an action",
         {},

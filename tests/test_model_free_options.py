@@ -93,7 +93,7 @@ def test_actor_reads_only_its_slice_and_residual_critic_shapes():
 
 
 def test_one_epoch_with_every_option_trains_and_stays_finite():
-    s = tiny(critic_arch="residual")
+    s = tiny(critic_arch="residual", n_step=3)
     s = sp.replace(s, task=dataclasses.replace(s.task, obs_memory=True, obs_privileged=True, err_cost="log"))
     t = sp.trainer_for(s)
     assert (t.env.obs_size, t.env.actor_obs_size) == (33, 24)

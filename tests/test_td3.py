@@ -216,6 +216,56 @@ def test_ring_buffer_insert_wraps_and_samples_filled_rows():
     assert rb.transition_bytes(17, 4) == 4 * (2 * 17 + 4 + 3)
 
 
+def _two_env_buffer(done, terminated, rows: int, capacity: int = 16):
+    """A buffer of 2 envs: row r holds env r % 2's step r // 2, reward r, obs r, next_obs r + 0.5."""
+    buf = rb.init(capacity, 1, 1)
+    r = jnp.arange(rows, dtype=jnp.float32)
+    for i in range(0, rows, 2):
+        sl = slice(i, i + 2)
+        tr = rb.Transition(obs=r[sl, None], action=r[sl, None], reward=r[sl], next_obs=r[sl, None] + 0.5,
+                           terminated=terminated[sl], done=done[sl])  # fmt: skip
+        buf = rb.insert(buf, tr)
+    return buf
+
+
+def test_n_step_returns_follow_one_env_and_stop_at_episode_ends_and_the_newest_row():
+    """n = 3 over 2 envs: from row i the same env's rows i + 2, i + 4 follow.  The return stops
+    after a step that ended its episode (truncation bootstraps from its next_obs, termination
+    does not), and at the newest row written."""
+    g = 0.5
+    done = jnp.zeros(10).at[4].set(1.0).at[7].set(1.0)  # env 0 ends at row 4 (truncated), env 1 at 7
+    term = jnp.zeros(10).at[7].set(1.0)  # row 7: a crash
+    buf = _two_env_buffer(done, term, rows=10)
+    batch, disc, r1 = jax.jit(lambda k: rb.sample_n_step(buf, k, 6, 3, 2, g))(jax.random.PRNGKey(0))
+    # rows the sample drew
+    drawn = np.asarray(batch.obs[:, 0]).astype(int)
+    want = {0: (0 + g * 2 + g * g * 4, 4.5, 0.0, 3),  # ends at row 4 (truncated): bootstraps from 4.5
+            1: (1 + g * 3 + g * g * 5, 5.5, 0.0, 3),
+            3: (3 + g * 5 + g * g * 7, 7.5, 1.0, 3),  # row 7 terminated
+            6: (6 + g * 8, 8.5, 0.0, 2),  # row 10 is not written yet
+            7: (7.0, 7.5, 1.0, 1), 4: (4.0, 4.5, 0.0, 1), 2: (2 + g * 4, 4.5, 0.0, 2),
+            5: (5 + g * 7, 7.5, 1.0, 2), 8: (8.0, 8.5, 0.0, 1), 9: (9.0, 9.5, 0.0, 1)}  # fmt: skip
+    assert len(set(drawn)) > 3
+    for i, row in enumerate(drawn):
+        ret, nxt, terminated, m = want[int(row)]
+        assert float(batch.reward[i]) == pytest.approx(ret), row
+        assert float(batch.next_obs[i, 0]) == nxt and float(batch.terminated[i]) == terminated, row
+        assert float(disc[i]) == pytest.approx(g**m) and float(r1[i]) == row, row
+
+
+def test_n_step_returns_wrap_around_the_ring_and_start_at_the_oldest_row():
+    """A full ring: the oldest row (at pos) has every later row after it; the newest has none."""
+    done = jnp.zeros(20)
+    buf = _two_env_buffer(done, jnp.zeros(20), rows=20, capacity=16)  # rows 16-19 overwrote 0-3
+    assert int(buf.pos) == 4 and int(buf.size) == 16
+    batch, disc, _ = jax.jit(lambda k: rb.sample_n_step(buf, k, 64, 3, 2, 0.5))(jax.random.PRNGKey(1))
+    for i in range(64):
+        first = float(batch.obs[i, 0])  # the step number written in that row
+        m = round(float(np.log(float(disc[i])) / np.log(0.5)))
+        assert m == min(3, (19 - first) // 2 + 1), first  # the newest step is 19 (env 1), 18 (env 0)
+        assert float(batch.next_obs[i, 0]) == first + 2 * (m - 1) + 0.5
+
+
 def test_twin_critics_are_one_vmapped_apply_equal_to_two_separate_ones():
     nets = make_networks(4, (16, 16))
     _, critic = init_params(nets, jax.random.PRNGKey(0), 17, 4)

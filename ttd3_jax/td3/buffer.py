@@ -64,3 +64,27 @@ def sample(buf: ReplayBuffer, key: jax.Array, batch_size: int) -> Transition:
     """Uniform sample with replacement from the filled rows."""
     idx = jax.random.randint(key, (batch_size,), 0, jnp.maximum(buf.size, 1))
     return jax.tree.map(lambda d: d[idx], buf.data)
+
+
+def sample_n_step(buf: ReplayBuffer, key: jax.Array, batch_size: int, n: int, num_envs: int, gamma):
+    """A uniform minibatch whose rows carry n-step returns (``TrainConfig.n_step``).
+
+    Row ``r + num_envs`` is env ``r % num_envs``'s next step, so from each sampled row the
+    same env's next ``n - 1`` rows follow at strides of ``num_envs``.  A row's return sums
+    ``γ^k r_k`` over the m <= n steps until its episode ended (``done``: termination or
+    truncation) or the newest row written; ``next_obs`` and ``terminated`` are the m-th step's,
+    so a truncated episode bootstraps from its last observation and a terminated one does not.
+    Returns ``(batch, γ^m (B,), the sampled rows' one-step rewards (B,))``."""
+    idx = jax.random.randint(key, (batch_size,), 0, jnp.maximum(buf.size, 1))
+    avail = (buf.pos - idx - 1) % buf.capacity + 1  # rows from idx (included) to the newest
+    steps = num_envs * jnp.arange(n)
+    data = jax.tree.map(lambda d: d[(idx[:, None] + steps[None, :]) % buf.capacity], buf.data)  # (B, n, ...)
+    ended_before = jnp.cumsum(data.done, axis=1) - data.done  # episodes ended at an earlier step
+    use = (steps[None, :] < avail[:, None]) & (ended_before == 0)  # (B, n): prefixes, step 0 always
+    m = jnp.sum(use, axis=1)
+    reward = jnp.sum(jnp.where(use, gamma ** jnp.arange(n) * data.reward, 0.0), axis=1)
+    rows = jnp.arange(batch_size)
+    batch = Transition(obs=data.obs[:, 0], action=data.action[:, 0], reward=reward,
+                       next_obs=data.next_obs[rows, m - 1], terminated=data.terminated[rows, m - 1],
+                       done=data.done[rows, m - 1])  # fmt: skip
+    return batch, gamma**m, data.reward[:, 0]

@@ -99,6 +99,9 @@ class TrainConfig:
     epochs: int = 50  # progress / eval / checkpoint points
     noise: NoiseConfig = NoiseConfig()
     target_noise: str = "fixed"  # A4: σ̃ fixed, or "shared_sigma" (uses the current σ)
+    # critic targets from n-step returns (not in the paper; FastTD3 uses 3), each cut where its
+    # episode ended and bootstrapped through truncation; 1 is TD3's one-step target
+    n_step: int = 1
 
     def __post_init__(self):
         _validate(self)
@@ -145,6 +148,7 @@ def _validate(c: TrainConfig) -> None:
         checks.integer(name, getattr(c, name), 1, MAX_TRANSITIONS)
     checks.integer("model_horizon", c.model_horizon, 0, 100_000)
     checks.integer("warmup_transitions", c.warmup_transitions, 0, MAX_TRANSITIONS)
+    checks.integer("n_step", c.n_step, 1, 1000)
     checks.boolean("normalize_obs", c.normalize_obs)
     checks.instance("noise", c.noise, NoiseConfig)
     if len(c.hidden) < 1 or not all(checks.is_integer(h) and h >= 1 for h in c.hidden):

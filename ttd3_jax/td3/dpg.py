@@ -141,20 +141,25 @@ def polyak(ts: TrainState, hp: Hyper) -> TrainState:
 
 
 def critic_update(s: Setup, ts: TrainState, hp: Hyper, key: jax.Array):
-    """One twin-critic step on a fresh minibatch and the σ update after it; returns
-    ``(ts, batch, loss, mean Q_1)``."""
+    """One twin-critic step on a fresh minibatch (n-step returns with ``n_step`` > 1) and the
+    σ update after it (on the rows' one-step rewards); returns ``(ts, batch, loss, mean Q_1)``."""
     c = s.config
     k_batch, k_target = jax.random.split(key)
-    batch = rb.sample(ts.buffer, k_batch, c.batch_size)
+    if c.n_step > 1:
+        batch, discount, rewards = rb.sample_n_step(ts.buffer, k_batch, c.batch_size, c.n_step, c.num_envs,
+                                                    hp.gamma)  # fmt: skip
+    else:
+        batch = rb.sample(ts.buffer, k_batch, c.batch_size)
+        discount, rewards = None, batch.reward
     target_std = exploration_std(s, ts) if c.target_noise == "shared_sigma" else hp.target_sigma
     grad = jax.value_and_grad(critic_loss, has_aux=True)
     (loss, q_mean), g = grad(
         ts.critic, nets=s.nets, target_actor=ts.target_actor, target_critic=ts.target_critic,
-        stats=obs_stats(s, ts), batch=batch, key=k_target, hp=hp, target_std=target_std,
+        stats=obs_stats(s, ts), batch=batch, key=k_target, hp=hp, target_std=target_std, discount=discount,
     )  # fmt: skip
     critic, critic_opt = adam_step(s, ts.critic, ts.critic_opt, g, hp.lr_critic)
     n_upd = ts.n_upd + 1
-    noise = nz.update(ts.noise, cfg=c.noise, time_attenuating=c.time_attenuating, hp=hp, rewards=batch.reward,
+    noise = nz.update(ts.noise, cfg=c.noise, time_attenuating=c.time_attenuating, hp=hp, rewards=rewards,
                       n_tr=ts.n_tr, n_upd=n_upd, episode_length=s.env.episode_length)  # fmt: skip
     return ts.replace(critic=critic, critic_opt=critic_opt, noise=noise, n_upd=n_upd), batch, loss, q_mean
 

@@ -1,6 +1,7 @@
 """TD3 losses (Fujimoto et al. 2018; spec §2.4).
 
-Critic: y = r + γ (1 − terminated) min_i Q'_i(s', clip(π'(s') + clip(σ̃ ξ, −c, c), −1, 1)),
+Critic: y = r + γ (1 − terminated) min_i Q'_i(s', clip(π'(s') + clip(σ̃ ξ, −c, c), −1, 1))
+(with n-step returns, r is Σ_{k<m} γ^k r_k and γ is γ^m),
 loss Σ_i mean (y − Q_i(s, a))².  Actor: −mean Q_1(s, π(s)).  Observations arrive raw; the
 networks normalise them (:func:`~ttd3_jax.td3.networks.normalize`).
 """
@@ -26,10 +27,12 @@ def critic_loss(
     key: jax.Array,
     hp: Hyper,
     target_std,
+    discount: jax.Array | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """Twin-critic TD loss and mean Q_1 over the batch; ``target_std`` is σ̃ (or the shared
-    σ under ``target_noise="shared_sigma"``), its noise clipped to ±``hp.target_clip``."""
-    disc = hp.gamma * (1.0 - batch.terminated)
+    σ under ``target_noise="shared_sigma"``), its noise clipped to ±``hp.target_clip``;
+    ``discount`` (B,) replaces γ for n-step returns (γ^m of each row's m steps)."""
+    disc = (hp.gamma if discount is None else discount) * (1.0 - batch.terminated)
     pi_next = policy(nets, target_actor, stats, batch.next_obs)
     eps = jnp.clip(target_std * jax.random.normal(key, pi_next.shape), -hp.target_clip, hp.target_clip)
     a_next = jnp.clip(pi_next + eps, -1.0, 1.0)
