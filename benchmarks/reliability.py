@@ -29,9 +29,18 @@ def state(seed: int) -> dict:
             "actor": {"w": rng.standard_normal((64, 64)).astype(np.float32)}}  # fmt: skip
 
 
+def flip(path: str, start: int, n: int, rng: np.random.Generator) -> None:
+    """Change every byte of ``path[start : start + n]`` (XOR with random non-zero bytes)."""
+    with open(path, "r+b") as fh:
+        fh.seek(start)
+        old = np.frombuffer(fh.read(n), np.uint8)
+        fh.seek(start)
+        fh.write((old ^ rng.integers(1, 256, old.size, dtype=np.uint8)).tobytes())
+
+
 def corrupt_newest(trials: int, rng: np.random.Generator) -> dict:
-    """Random bytes over a random range of a random file of checkpoint 2 (of 1 and 2):
-    does the restore fall back to 1, or load 2's true contents, or load wrong contents?"""
+    """A random range of a random file of checkpoint 2 (of 1 and 2) changed: does the
+    restore fall back to 1, or load 2's true contents (damage unreported), or wrong contents?"""
     out = {"fell back": 0, "loaded intact": 0, "loaded WRONG contents": 0}
     for i in range(trials):
         with tempfile.TemporaryDirectory() as run_dir:
@@ -45,9 +54,7 @@ def corrupt_newest(trials: int, rng: np.random.Generator) -> dict:
             size = os.path.getsize(path)
             start = int(rng.integers(max(size, 1)))
             n = int(min(rng.choice([1, 64, 4096]), max(size - start, 1)))
-            with open(path, "r+b") as fh:
-                fh.seek(start)
-                fh.write(rng.bytes(n))
+            flip(path, start, n, rng)
             epoch, got, _ = ckpt.restore_newest(run_dir, state(0))
             pairs = zip(jax.tree.leaves(got), jax.tree.leaves(state(2)), strict=True)
             same = all(np.array_equal(np.asarray(a), b) for a, b in pairs)
