@@ -264,3 +264,28 @@ def test_resume_past_a_damaged_newest_checkpoint_says_so_once_and_prints_no_trac
     assert f"resumed {run_dir} at epoch 2/2" in res.stdout
     for noise in ("Traceback", "Event loop is closed", "ERROR", "Exception"):
         assert noise not in res.stderr, res.stderr
+
+
+def test_remove_deletes_a_run_killed_before_its_first_checkpoint_and_nothing_else(tmp_path, capsys):
+    unstarted = runs.new_run_dir(str(tmp_path), tiny())
+    run_state.mark(unstarted, "running")  # killed during compile or warm-up: no checkpoint
+    os.makedirs(os.path.join(unstarted, "checkpoints", "0.orbax-checkpoint-tmp-7"))
+    assert train.main(["--remove", unstarted]) == 0
+    assert capsys.readouterr().out == f"removed {unstarted} (it stopped before its first checkpoint)\n"
+    assert not os.path.exists(unstarted)
+    trained = two_checkpoints(tmp_path)
+    assert train.main(["--remove", trained]) == 2
+    err = capsys.readouterr().err
+    assert f"{trained} holds checkpoint(s) [2, 3]" in err and f"--resume {trained}" in err
+    assert os.path.isdir(os.path.join(trained, "checkpoints", "3"))
+    live = runs.new_run_dir(str(tmp_path), tiny(seed=1))
+    run_state.acquire(live)  # a live process (this one) trains it
+    assert train.main(["--remove", live]) == 2 and "one writer per run" in capsys.readouterr().err
+    assert os.path.isdir(live)
+    run_state.release(live)
+    assert train.main(["--remove", live, "--epochs", "3"]) == 2
+    assert "--remove deletes a run and takes nothing else; remove --epochs 3" in capsys.readouterr().err
+    assert (
+        train.main(["--remove", str(tmp_path / "nope")]) == 2
+        and "not a ttd3_jax run" in capsys.readouterr().err
+    )
