@@ -12,8 +12,10 @@ background thread while training goes on; the next save, :func:`finish` and
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+import logging
 import math
 import os
 import sys
@@ -252,6 +254,19 @@ def _stderr(message: str) -> None:
     print(f"note: {message}", file=sys.stderr)
 
 
+@contextlib.contextmanager
+def _orbax_quiet():
+    """orbax logs (absl, ERROR) each damaged file it meets, e.g. a step's metadata while
+    listing the steps; the fallback says what did not load, in one line."""
+    logger = logging.getLogger("absl")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
 def restore_newest(run_dir: str, like, epoch: int | None = None, note=_stderr):
     """The newest checkpoint of ``run_dir`` that loads (or checkpoint ``epoch``):
     ``(epoch, state, skipped)``, where ``skipped`` lists ``(epoch, reason)`` of newer
@@ -263,6 +278,11 @@ def restore_newest(run_dir: str, like, epoch: int | None = None, note=_stderr):
     the digest, and ``note`` says so: the state restored is then bit for bit the one saved,
     so the run continues exactly; only damage that changes no restored value would go
     unreported."""
+    with _orbax_quiet():
+        return _restore_newest(run_dir, like, epoch, note)
+
+
+def _restore_newest(run_dir: str, like, epoch: int | None, note):
     mngr = manager(run_dir, read_only=True)
     try:
         saved = sorted(mngr.all_steps(), reverse=True)
