@@ -1,12 +1,12 @@
 """Fault scenarios of issue 34, re-runnable: corrupt byte ranges of the newest checkpoint
-and of a ``best/`` file, a second writer, and a reader beside an unfinished save.  Prints
-how each ended; docs/reliability.md holds a measured output.
+and of a ``best/`` file, a second writer, a reader beside an unfinished save, and with real
+``python -m ttd3_jax.train`` processes (benchmarks/reliability_processes.py): SIGKILL at
+chosen moments then ``--resume`` (compared with an uninterrupted run), a second trainer
+racing for a live run, and a full disk (a small tmpfs; needs root, else skipped with a
+note).  Prints how each ended; docs/reliability.md holds a measured output.
 
-    python benchmarks/reliability.py            # 40 corruptions
-    python benchmarks/reliability.py --quick    # 8
-
-Not covered here (see docs/reliability.md): SIGKILL at N moments (tests/test_cli.py),
-a full disk (needs a small tmpfs, root).
+    python benchmarks/reliability.py            # 40 corruptions, 5 kill moments, full disk
+    python benchmarks/reliability.py --quick    # 8 corruptions, 1 kill moment (CI)
 """
 
 from __future__ import annotations
@@ -15,9 +15,11 @@ import argparse
 import logging
 import os
 import tempfile
+import time
 
 import jax
 import numpy as np
+from reliability_processes import full_disk, sigkill_then_resume  # noqa: E402  (beside this script)
 
 from ttd3_jax import checkpoint as ckpt
 from ttd3_jax import run_state
@@ -116,6 +118,14 @@ def main() -> None:
     print("newest checkpoint:", corrupt_newest(n, rng))
     print("best/ file (64 random bytes):", corrupt_best(n, rng))
     print(two_writers_and_a_reader())
+    t = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        cache = os.path.join(tmp, "xla")  # the runs share their compiled programs
+        for name, outcome in sigkill_then_resume(tmp, cache, args.quick).items():
+            print(f"SIGKILL {name}: {outcome}" if name != "second trainer" else f"{name}: {outcome}")
+        if not args.quick:
+            print(full_disk(tmp, cache))
+    print(f"(train processes: {time.perf_counter() - t:.0f} s)")
 
 
 if __name__ == "__main__":
