@@ -1,12 +1,12 @@
 """Fault scenarios of issue 34, re-runnable: corrupt byte ranges of the newest checkpoint
-and of a ``best/`` file, a second writer, and a reader beside an unfinished save.  Prints
-how each ended; docs/reliability.md holds a measured output.
+and of a ``best/`` file, a second writer, a reader beside an unfinished save, and with real
+``python -m ttd3_jax.train`` processes (benchmarks/reliability_processes.py): SIGKILL at
+chosen moments then ``--resume`` (compared with an uninterrupted run), a second trainer
+racing for a live run, and a full disk (a small tmpfs; needs root, else skipped with a
+note).  Prints how each ended; docs/reliability.md holds a measured output.
 
-    python benchmarks/reliability.py            # 40 corruptions
-    python benchmarks/reliability.py --quick    # 8
-
-Not covered here (see docs/reliability.md): SIGKILL at N moments (tests/test_cli.py),
-a full disk (needs a small tmpfs, root).
+    python benchmarks/reliability.py            # 40 corruptions, 5 kill moments, full disk
+    python benchmarks/reliability.py --quick    # 8 corruptions, 1 kill moment (CI)
 """
 
 from __future__ import annotations
@@ -15,9 +15,11 @@ import argparse
 import logging
 import os
 import tempfile
+import time
 
 import jax
 import numpy as np
+from reliability_processes import full_disk, sigkill_then_resume  # noqa: E402  (beside this script)
 
 from ttd3_jax import checkpoint as ckpt
 from ttd3_jax import run_state
@@ -29,9 +31,18 @@ def state(seed: int) -> dict:
             "actor": {"w": rng.standard_normal((64, 64)).astype(np.float32)}}  # fmt: skip
 
 
+def flip(path: str, start: int, n: int, rng: np.random.Generator) -> None:
+    """Change every byte of ``path[start : start + n]`` (XOR with random non-zero bytes)."""
+    with open(path, "r+b") as fh:
+        fh.seek(start)
+        old = np.frombuffer(fh.read(n), np.uint8)
+        fh.seek(start)
+        fh.write((old ^ rng.integers(1, 256, old.size, dtype=np.uint8)).tobytes())
+
+
 def corrupt_newest(trials: int, rng: np.random.Generator) -> dict:
-    """Random bytes over a random range of a random file of checkpoint 2 (of 1 and 2):
-    does the restore fall back to 1, or load 2's true contents, or load wrong contents?"""
+    """A random range of a random file of checkpoint 2 (of 1 and 2) changed: does the
+    restore fall back to 1, or load 2's true contents (damage unreported), or wrong contents?"""
     out = {"fell back": 0, "loaded intact": 0, "loaded WRONG contents": 0}
     for i in range(trials):
         with tempfile.TemporaryDirectory() as run_dir:
@@ -45,9 +56,7 @@ def corrupt_newest(trials: int, rng: np.random.Generator) -> dict:
             size = os.path.getsize(path)
             start = int(rng.integers(max(size, 1)))
             n = int(min(rng.choice([1, 64, 4096]), max(size - start, 1)))
-            with open(path, "r+b") as fh:
-                fh.seek(start)
-                fh.write(rng.bytes(n))
+            flip(path, start, n, rng)
             epoch, got, _ = ckpt.restore_newest(run_dir, state(0))
             pairs = zip(jax.tree.leaves(got), jax.tree.leaves(state(2)), strict=True)
             same = all(np.array_equal(np.asarray(a), b) for a, b in pairs)
@@ -109,6 +118,14 @@ def main() -> None:
     print("newest checkpoint:", corrupt_newest(n, rng))
     print("best/ file (64 random bytes):", corrupt_best(n, rng))
     print(two_writers_and_a_reader())
+    t = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        cache = os.path.join(tmp, "xla")  # the runs share their compiled programs
+        for name, outcome in sigkill_then_resume(tmp, cache, args.quick).items():
+            print(f"SIGKILL {name}: {outcome}" if name != "second trainer" else f"{name}: {outcome}")
+        if not args.quick:
+            print(full_disk(tmp, cache))
+    print(f"(train processes: {time.perf_counter() - t:.0f} s)")
 
 
 if __name__ == "__main__":

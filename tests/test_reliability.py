@@ -8,6 +8,7 @@ import json
 import os
 import re
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -179,3 +180,112 @@ def test_a_full_disk_or_no_memory_ends_in_one_line_with_what_to_do():
         "out of memory"
     )
     assert train.failure_message(RuntimeError("something else")) is None
+
+
+def small_state(seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    return {"buffer": rng.standard_normal((256, 8)).astype(np.float32), "step": np.array([seed], np.int32)}
+
+
+def saved_twice(run_dir: str, asynchronous: bool = False) -> None:
+    m = ckpt.manager(run_dir, asynchronous=asynchronous)
+    ckpt.save(m, 1, small_state(1), wait=not asynchronous)
+    ckpt.save(m, 2, small_state(2), wait=not asynchronous)
+    ckpt.close(m)
+
+
+def test_a_changed_byte_in_any_file_of_the_newest_checkpoint_is_detected(tmp_path):
+    """Metadata, commit markers and unused bytes included: the file hashes, not the contents."""
+    run_dir = str(tmp_path)
+    saved_twice(run_dir, asynchronous=True)
+    files = ckpt.file_digests(run_dir)
+    assert set(files) == {1, 2} and files[2] == ckpt.hash_files(os.path.join(run_dir, "checkpoints", "2"))
+    for rel in files[2]:
+        path = os.path.join(run_dir, "checkpoints", "2", rel)
+        data = bytearray(open(path, "rb").read())
+        data[len(data) // 2] ^= 0x01
+        open(path, "wb").write(bytes(data))
+        epoch, got, skipped = ckpt.restore_newest(run_dir, small_state(0))
+        assert epoch == 1 and np.array_equal(got["buffer"], small_state(1)["buffer"]), rel
+        assert skipped == [
+            (2, f"CorruptCheckpoint: its file {rel} changed since it was saved ({ckpt.FILES})")
+        ]
+        data[len(data) // 2] ^= 0x01
+        open(path, "wb").write(bytes(data))
+    assert ckpt.restore_newest(run_dir, small_state(0))[0] == 2  # all restored: 2 loads again
+
+
+def test_a_checkpoint_killed_before_its_file_hashes_loads_on_its_content_digest_with_a_note(tmp_path):
+    run_dir = str(tmp_path)
+    saved_twice(run_dir)
+    record = ckpt.file_digests(run_dir)
+    del record[2]  # as if killed between orbax's finalisation and the hashes being written
+    (tmp_path / ckpt.FILES).write_text(json.dumps({str(k): v for k, v in record.items()}))
+    notes = []
+    epoch, got, skipped = ckpt.restore_newest(run_dir, small_state(0), note=notes.append)
+    assert (epoch, skipped) == (2, []) and np.array_equal(got["buffer"], small_state(2)["buffer"])
+    assert notes == [f"checkpoint 2 has no file hashes ({ckpt.FILES}; the run stopped before they were "
+                     "written); its contents match their digest, so it is loaded"]  # fmt: skip
+    contents = ckpt.digests(run_dir)
+    contents[2] = "0" * 32  # and its contents differ: it falls back as before
+    (tmp_path / ckpt.DIGESTS).write_text(json.dumps({str(k): v for k, v in contents.items()}))
+    assert ckpt.restore_newest(run_dir, small_state(0), note=notes.append)[0] == 1 and len(notes) == 1
+
+
+def test_saving_again_an_epoch_that_was_deleted_drops_its_old_file_hashes(tmp_path, monkeypatch):
+    run_dir = str(tmp_path)
+    saved_twice(run_dir)
+    m = ckpt.manager(run_dir)
+    m.delete(2)  # what resume does with a checkpoint that does not load
+    monkeypatch.setattr(ckpt._Recorder, "run", lambda self: None)  # killed before the new hashes
+    ckpt.save(m, 2, small_state(5))
+    ckpt.close(m)
+    assert set(ckpt.file_digests(run_dir)) == {1}  # not the deleted checkpoint's hashes
+    epoch, got, _ = ckpt.restore_newest(run_dir, small_state(0), note=lambda message: None)
+    assert epoch == 2 and np.array_equal(got["buffer"], small_state(5)["buffer"])
+
+
+def test_resume_past_a_damaged_newest_checkpoint_says_so_once_and_prints_no_traceback(tmp_path):
+    """The damage that made orbax's threads print 'Event loop is closed' (an OCDBT manifest that
+    no longer decodes) is now caught by the file hashes before orbax reads anything."""
+    run_dir = two_checkpoints(tmp_path)
+    with open(os.path.join(run_dir, "metrics.csv"), "w") as fh:  # the epochs' rows (the results need them)
+        fh.write("epoch,seed,env_steps,eval_return\n1,0,16,0.0\n2,0,32,0.0\n")
+    manifest = os.path.join(run_dir, "checkpoints", "3", "default", "manifest.ocdbt")
+    data = bytearray(open(manifest, "rb").read())
+    data[4] ^= 0xFF
+    open(manifest, "wb").write(bytes(data))
+    rel = os.path.relpath(manifest, os.path.join(run_dir, "checkpoints", "3"))
+    res = subprocess.run([sys.executable, "-m", "ttd3_jax.train", "--resume", run_dir],
+                         capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert (f"skipped checkpoint 3, which does not load (CorruptCheckpoint: its file {rel} changed since it "
+            f"was saved ({ckpt.FILES})); it is deleted") in res.stdout  # fmt: skip
+    assert f"resumed {run_dir} at epoch 2/2" in res.stdout
+    for noise in ("Traceback", "Event loop is closed", "ERROR", "Exception"):
+        assert noise not in res.stderr, res.stderr
+
+
+def test_remove_deletes_a_run_killed_before_its_first_checkpoint_and_nothing_else(tmp_path, capsys):
+    unstarted = runs.new_run_dir(str(tmp_path), tiny())
+    run_state.mark(unstarted, "running")  # killed during compile or warm-up: no checkpoint
+    os.makedirs(os.path.join(unstarted, "checkpoints", "0.orbax-checkpoint-tmp-7"))
+    assert train.main(["--remove", unstarted]) == 0
+    assert capsys.readouterr().out == f"removed {unstarted} (it stopped before its first checkpoint)\n"
+    assert not os.path.exists(unstarted)
+    trained = two_checkpoints(tmp_path)
+    assert train.main(["--remove", trained]) == 2
+    err = capsys.readouterr().err
+    assert f"{trained} holds checkpoint(s) [2, 3]" in err and f"--resume {trained}" in err
+    assert os.path.isdir(os.path.join(trained, "checkpoints", "3"))
+    live = runs.new_run_dir(str(tmp_path), tiny(seed=1))
+    run_state.acquire(live)  # a live process (this one) trains it
+    assert train.main(["--remove", live]) == 2 and "one writer per run" in capsys.readouterr().err
+    assert os.path.isdir(live)
+    run_state.release(live)
+    assert train.main(["--remove", live, "--epochs", "3"]) == 2
+    assert "--remove deletes a run and takes nothing else; remove --epochs 3" in capsys.readouterr().err
+    assert (
+        train.main(["--remove", str(tmp_path / "nope")]) == 2
+        and "not a ttd3_jax run" in capsys.readouterr().err
+    )

@@ -1,7 +1,10 @@
 """Orbax checkpoints of the whole training state (optimiser state, buffer and key included).
 
 Saves are atomic (orbax writes a temporary directory and renames it), so a run killed at
-any point keeps its last complete checkpoint.  A manager made with ``asynchronous=True``
+any point keeps its last complete checkpoint.  Each checkpoint is verified twice on restore:
+the digest of its contents (written before the save, :data:`DIGESTS`) and the sha256 of every
+file under ``checkpoints/<epoch>/`` (written once orbax has finalised the save, :data:`FILES`),
+so damage anywhere in its files, metadata included, is reported.  A manager made with ``asynchronous=True``
 (the trainer's, saving with ``wait=False``) copies the state to host memory and writes it in a
 background thread while training goes on; the next save, :func:`finish` and
 :func:`latest_epoch` wait for it.
@@ -9,10 +12,16 @@ background thread while training goes on; the next save, :func:`finish` and
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+import logging
 import math
 import os
+import sys
+import threading
+import time
+import weakref
 
 import jax
 import jax.numpy as jnp
@@ -25,6 +34,7 @@ from flax import serialization
 
 
 DIGESTS = "checkpoint_digests.json"  # in the run directory: {epoch: digest of the saved state}
+FILES = "checkpoint_files.json"  # in the run directory: {epoch: {file under checkpoints/<epoch>/: sha256}}
 
 
 def _empty(x) -> bool:
@@ -59,16 +69,17 @@ def digest(tree) -> str:
     return h.hexdigest()
 
 
-def _digest_path(mngr: ocp.CheckpointManager) -> str:
-    return os.path.join(os.path.dirname(str(mngr.directory)), DIGESTS)
+def _run_dir(mngr: ocp.CheckpointManager) -> str:
+    return os.path.dirname(str(mngr.directory))
 
 
-def digests(run_dir_or_mngr) -> dict[int, str]:
-    """``{epoch: digest}`` of a run's checkpoints (empty for runs saved before digests)."""
-    path = (_digest_path(run_dir_or_mngr) if isinstance(run_dir_or_mngr, ocp.CheckpointManager)
-            else os.path.join(run_dir_or_mngr, DIGESTS))  # fmt: skip
+def _record(run_dir_or_mngr, name: str) -> dict:
+    """``{epoch: entry}`` of record ``name`` in the run directory (empty when missing)."""
+    run_dir = (
+        _run_dir(run_dir_or_mngr) if isinstance(run_dir_or_mngr, ocp.CheckpointManager) else run_dir_or_mngr
+    )
     try:
-        with open(path) as fh:
+        with open(os.path.join(run_dir, name)) as fh:
             return {int(k): v for k, v in json.load(fh).items()}
     except FileNotFoundError:
         return {}
@@ -76,39 +87,121 @@ def digests(run_dir_or_mngr) -> dict[int, str]:
         return {}  # a damaged record verifies nothing; every checkpoint then loads unverified
 
 
+def _write_record(run_dir: str, name: str, record: dict) -> None:
+    _atomic_write(os.path.join(run_dir, name), json.dumps({str(k): v for k, v in sorted(record.items())}))
+
+
+def digests(run_dir_or_mngr) -> dict[int, str]:
+    """``{epoch: digest}`` of a run's checkpoints (empty for runs saved before digests)."""
+    return _record(run_dir_or_mngr, DIGESTS)
+
+
+def file_digests(run_dir_or_mngr) -> dict[int, dict[str, str]]:
+    """``{epoch: {path under checkpoints/<epoch>/: sha256}}`` of a run's finalised checkpoints."""
+    return _record(run_dir_or_mngr, FILES)
+
+
+def hash_files(folder: str) -> dict[str, str]:
+    """``{path relative to folder: sha256}`` of every file under ``folder``."""
+    out = {}
+    for d, _, names in os.walk(folder):
+        for name in names:
+            path, h = os.path.join(d, name), hashlib.sha256()
+            with open(path, "rb") as fh:
+                for block in iter(lambda fh=fh: fh.read(1 << 20), b""):
+                    h.update(block)
+            out[os.path.relpath(path, folder)] = h.hexdigest()
+    return dict(sorted(out.items()))
+
+
+def _saved_steps(mngr: ocp.CheckpointManager) -> set[int]:
+    folder = str(mngr.directory)
+    return {int(n) for n in os.listdir(folder) if n.isdigit()} if os.path.isdir(folder) else set()
+
+
+def _record_files(mngr: ocp.CheckpointManager, epoch: int) -> None:
+    """Add checkpoint ``epoch``'s file hashes to :data:`FILES` (if it was saved), keeping
+    only the checkpoints still on disk."""
+    folder = os.path.join(str(mngr.directory), str(epoch))
+    if not os.path.isdir(folder):  # the save failed: its error is raised by the manager's wait
+        return
+    kept = _saved_steps(mngr)
+    record = {e: f for e, f in file_digests(mngr).items() if e in kept}
+    record[epoch] = hash_files(folder)
+    _write_record(_run_dir(mngr), FILES, record)
+
+
+class _Recorder(threading.Thread):
+    """Writes the file hashes of an asynchronous save once orbax has finalised it (renamed
+    its directory and removed the checkpoints past ``max_to_keep``), while training goes on."""
+
+    def __init__(self, mngr: ocp.CheckpointManager, epoch: int):
+        super().__init__(name=f"ttd3-checkpoint-files-{epoch}", daemon=True)
+        self.mngr, self.epoch, self.error = mngr, epoch, None
+
+    def run(self) -> None:
+        try:
+            while self.mngr.is_saving_in_progress():  # orbax's finalisation runs in its own thread
+                time.sleep(0.02)
+            _record_files(self.mngr, self.epoch)
+        except Exception as e:  # e.g. a full disk: raised by the next wait (:func:`_settle`)
+            self.error = e
+
+
+_recorders: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # manager -> its _Recorder
+
+
+def _settle(mngr: ocp.CheckpointManager) -> None:
+    """Wait for ``mngr``'s save in flight and for its file hashes (raising what failed)."""
+    recorder = _recorders.pop(mngr, None)
+    try:
+        mngr.wait_until_finished()
+    finally:
+        if recorder is not None:
+            recorder.join()
+    if recorder is not None and recorder.error is not None:
+        raise recorder.error
+
+
 def save(mngr: ocp.CheckpointManager, epoch: int, state, wait: bool = True) -> None:
-    """Save ``state`` as checkpoint ``epoch`` (epochs completed), its digest recorded first
-    (``checkpoint_digests.json``, checked on restore).  ``wait``: return once it is on disk.
+    """Save ``state`` as checkpoint ``epoch`` (epochs completed): its content digest is
+    recorded first (:data:`DIGESTS`), its files' hashes once orbax has finalised it
+    (:data:`FILES`); both are checked on restore.  ``wait``: return once it is on disk.
     Otherwise (with an ``asynchronous`` manager) return once ``state`` is copied to host
     memory: a private copy, so the caller may donate ``state`` right away."""
     host = _pack(jax.tree.map(np.array, jax.device_get(state)))  # np.array copies
-    mngr.wait_until_finished()  # the previous save (orbax waits for it here anyway)
-    kept = set(mngr.all_steps()) | {epoch}
+    _settle(mngr)  # the previous save (orbax waits for it here anyway) and its file hashes
+    kept, run_dir = _saved_steps(mngr) | {epoch}, _run_dir(mngr)
     record = {e: d for e, d in digests(mngr).items() if e in kept}
     record[epoch] = digest(host)
-    _atomic_write(_digest_path(mngr), json.dumps({str(k): v for k, v in sorted(record.items())}))
+    _write_record(run_dir, DIGESTS, record)
+    files = file_digests(mngr)
+    if epoch in files:  # a checkpoint of this epoch deleted earlier (resume): its hashes go
+        _write_record(run_dir, FILES, {e: f for e, f in files.items() if e in kept and e != epoch})
     mngr.save(epoch, args=ocp.args.StandardSave(host), force=True)
+    _recorders[mngr] = recorder = _Recorder(mngr, epoch)
+    recorder.start()
     if wait:
-        mngr.wait_until_finished()
+        _settle(mngr)
 
 
 def finish(mngr: ocp.CheckpointManager) -> None:
-    """Wait until every save of ``mngr`` is on disk."""
-    mngr.wait_until_finished()
+    """Wait until every save of ``mngr`` is on disk, with its file hashes."""
+    _settle(mngr)
 
 
 def close(mngr: ocp.CheckpointManager) -> None:
     """Wait for ``mngr``'s saves, then shut its background threads down (left running, they
     print tracebacks when the interpreter exits)."""
     try:
-        mngr.wait_until_finished()
+        _settle(mngr)
     finally:
         mngr.close()
 
 
 def latest_epoch(mngr: ocp.CheckpointManager) -> int | None:
     """The newest checkpoint on disk (a save still being written is waited for)."""
-    mngr.wait_until_finished()
+    _settle(mngr)
     return mngr.latest_step()
 
 
@@ -116,10 +209,33 @@ class CorruptCheckpoint(ValueError):
     """A checkpoint or selected policy whose contents differ from the digest written with it."""
 
 
+def check_files(mngr: ocp.CheckpointManager, epoch: int) -> bool:
+    """Compare checkpoint ``epoch``'s files with the hashes recorded when it was saved:
+    ``False`` when none were recorded; raises :class:`CorruptCheckpoint` naming the first
+    file that changed, went missing or appeared."""
+    expected = file_digests(mngr).get(epoch)
+    if expected is None:
+        return False
+    found = hash_files(os.path.join(str(mngr.directory), str(epoch)))
+    for path in sorted(set(expected) | set(found)):
+        if expected.get(path) != found.get(path):
+            how = (
+                "is missing"
+                if path not in found
+                else "is not one of its files"
+                if path not in expected
+                else "changed"
+            )
+            raise CorruptCheckpoint(f"its file {path} {how} since it was saved ({FILES})")
+    return True
+
+
 def restore(mngr: ocp.CheckpointManager, epoch: int, like):
     """Restore checkpoint ``epoch`` into the structure, shapes and dtypes of ``like``, as
     host (numpy) arrays: the caller places them (``jax.device_put``, or onto a mesh).
-    Raises :class:`CorruptCheckpoint` when its contents differ from its recorded digest."""
+    Raises :class:`CorruptCheckpoint` when its files differ from the hashes recorded when it
+    was saved, or its contents from their recorded digest."""
+    check_files(mngr, epoch)
     abstract = jax.tree.map(lambda x: np.zeros((1,) if _empty(x) else x.shape, x.dtype), like)
     out = mngr.restore(epoch, args=ocp.args.StandardRestore(abstract))
     expected = digests(mngr).get(epoch)
@@ -134,29 +250,64 @@ def _reason(e: Exception) -> str:
     return f"{type(e).__name__}: {text[:160]}{'...' if len(text) > 160 else ''}"
 
 
-def restore_newest(run_dir: str, like, epoch: int | None = None):
+def _stderr(message: str) -> None:
+    print(f"note: {message}", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def _orbax_quiet():
+    """orbax logs (absl, ERROR) each damaged file it meets, e.g. a step's metadata while
+    listing the steps; the fallback says what did not load, in one line."""
+    logger = logging.getLogger("absl")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+def restore_newest(run_dir: str, like, epoch: int | None = None, note=_stderr):
     """The newest checkpoint of ``run_dir`` that loads (or checkpoint ``epoch``):
     ``(epoch, state, skipped)``, where ``skipped`` lists ``(epoch, reason)`` of newer
-    checkpoints that did not load (corrupt or half deleted).  Raises ``FileNotFoundError``
-    when none loads."""
+    checkpoints that did not load (corrupt, half deleted, or files that differ from their
+    hashes).  Raises ``FileNotFoundError`` when none loads.
+
+    A checkpoint with a content digest but no file hashes (the process was killed between
+    orbax finalising the save and the hashes being written) loads when its contents match
+    the digest, and ``note`` says so: the state restored is then bit for bit the one saved,
+    so the run continues exactly; only damage that changes no restored value would go
+    unreported."""
+    with _orbax_quiet():
+        return _restore_newest(run_dir, like, epoch, note)
+
+
+def _restore_newest(run_dir: str, like, epoch: int | None, note):
     mngr = manager(run_dir, read_only=True)
-    saved = sorted(mngr.all_steps(), reverse=True)
+    try:
+        saved = sorted(mngr.all_steps(), reverse=True)
+    finally:
+        mngr.close()
     if epoch is not None:
         if epoch not in saved:
             raise FileNotFoundError(f"no checkpoint {epoch} in {mngr.directory}; saved: {sorted(saved)}")
         saved = [epoch]
-    mngr.close()
     skipped = []
     for e in saved:
         m = manager(
             run_dir, read_only=True
         )  # a fresh manager each time: orbax's is not usable after a failure
         try:
-            return e, restore(m, e, like), skipped
+            state = restore(m, e, like)
         except Exception as err:  # orbax raises many kinds (ValueError, OSError, KeyError, ...)
             skipped.append((e, _reason(err)))
+            continue
         finally:
             m.close()
+        if e not in file_digests(run_dir) and e in digests(run_dir):
+            note(f"checkpoint {e} has no file hashes ({FILES}; the run stopped before they were written); "
+                 "its contents match their digest, so it is loaded")  # fmt: skip
+        return e, state, skipped
     why = "; ".join(f"epoch {e}: {r}" for e, r in skipped) or "none saved"
     raise FileNotFoundError(f"no checkpoint in {mngr.directory} loads ({why})")
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import datetime
 import json
 import os
+import shutil
 import socket
 from contextlib import contextmanager
 
@@ -150,3 +151,23 @@ def writing(run_dir: str, log=print):
         raise
     finally:
         release(run_dir)
+
+
+def remove_unstarted(run_dir: str) -> str:
+    """Delete ``run_dir``, a run that stopped before its first checkpoint (``train --remove``):
+    it holds nothing to resume or evaluate.  Refuses a directory that is not a run, a run
+    with a checkpoint, logged epochs or results, and a run a live process is training."""
+    if not os.path.isfile(os.path.join(run_dir, "config.json")):
+        raise FileNotFoundError(f"no config.json in {run_dir!r}: not a ttd3_jax run directory")
+    folder = os.path.join(run_dir, "checkpoints")
+    steps = sorted(int(n) for n in os.listdir(folder) if n.isdigit()) if os.path.isdir(folder) else []
+    kept = [f"checkpoint(s) {steps}"] if steps else []
+    kept += [f for f in ("metrics.csv", "eval.json", "best") if os.path.exists(os.path.join(run_dir, f))]
+    if kept:
+        raise ValueError(
+            f"{run_dir} holds {', '.join(kept)}: it is not a run that stopped before its first checkpoint. "
+            f"Continue it with python -m ttd3_jax.train --resume {run_dir}, or delete the directory yourself"
+        )
+    acquire(run_dir)  # refuses while a live process trains it
+    shutil.rmtree(run_dir)
+    return f"removed {run_dir} (it stopped before its first checkpoint)"

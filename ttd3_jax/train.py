@@ -6,6 +6,7 @@
     python -m ttd3_jax.train --train-tracks my_tracks/ # + your CSV tracks in the training mixture
     python -m ttd3_jax.train --vehicle crazyflie      # a named vehicle (sim.vehicles) for the task
     python -m ttd3_jax.train --resume runs/RUN_DIR    # continue from the newest checkpoint
+    python -m ttd3_jax.train --remove runs/RUN_DIR    # delete a run killed before its first checkpoint
     python -m ttd3_jax.train --help                   # every option, its default and units
 
 Exit status: 0 done, 2 bad input (the message names it), 3 the run diverged.
@@ -22,7 +23,7 @@ import sys
 
 import tyro
 
-from ttd3_jax import runs
+from ttd3_jax import run_state, runs
 from ttd3_jax import spec as sp
 from ttd3_jax.cache import use_compile_cache
 from ttd3_jax.cli_checks import bool_flags, refuse_bool_values
@@ -33,7 +34,8 @@ from ttd3_jax.sim.vehicles import VEHICLE_NAMES, with_vehicle
 PROG = "python -m ttd3_jax.train"
 DESCRIPTION = (
     "Train T-TD3 or TD3 (preset {preset!r}; defaults below are that preset's). Also: "
-    "--preset {presets}, --out DIR (default runs), --resume RUN_DIR, "
+    "--preset {presets}, --out DIR (default runs), --resume RUN_DIR, --remove RUN_DIR (delete a run "
+    "that stopped before its first checkpoint; a run with one is refused), "
     "--compile-cache DIR|none (XLA compilation cache; default ~/.cache/ttd3_jax/xla), "
     "--train-tracks CSV|DIR (your tracks in the training mixture, in a share "
     "--task.train-tracks-weight of the episodes), --vehicle {vehicles} (the task's vehicle, "
@@ -72,7 +74,7 @@ def preset_with_vehicle(name: str, vehicle: str | None) -> sp.RunSpec:
 
 
 def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
-    """The launcher's own flags and the run spec (``None`` with ``--resume``).  Bad input
+    """The launcher's own flags and the run spec (``None`` with ``--resume`` or ``--remove``).  Bad input
     raises ``ValueError`` (or exits 2 through tyro, which prints its own message)."""
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--preset", default=None)
@@ -81,7 +83,17 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
     pre.add_argument("--compile-cache", default=None)
     pre.add_argument("--train-tracks", default=None)
     pre.add_argument("--vehicle", default=None)
+    pre.add_argument("--remove", default=None)
     known, rest = pre.parse_known_args(argv)
+    if known.remove is not None:
+        extra = [
+            f"--{k.replace('_', '-')}" for k, v in vars(known).items() if v is not None and k != "remove"
+        ]
+        if extra + rest:
+            raise ValueError(
+                f"--remove deletes a run and takes nothing else; remove {' '.join(extra + rest)}"
+            )
+        return known, None
     if known.resume is not None:
         given = [k for k in ("preset", "out", "train_tracks", "vehicle") if getattr(known, k) is not None]
         extra = [f"--{k.replace('_', '-')}" for k in given] + rest
@@ -122,6 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("absl").setLevel(logging.ERROR)  # orbax's warnings are ours to phrase
     try:
         known, spec = parse(list(sys.argv[1:] if argv is None else argv))
+        if known.remove is not None:
+            print(run_state.remove_unstarted(known.remove))
+            return 0
         cache = use_compile_cache(known.compile_cache)
         note = " (--compile-cache none turns it off)" if cache else ""
         print(f"XLA compilation cache: {cache or 'off'}{note}")
@@ -129,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
             run(resume=known.resume)
         else:
             run(spec, out=known.out)
-    except (FileNotFoundError, ValueError) as e:
+    except (FileNotFoundError, ValueError) as e:  # RunLocked included
         print(f"error: {e}", file=sys.stderr)
         return 2
     except TrainingDiverged as e:
