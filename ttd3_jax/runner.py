@@ -31,6 +31,27 @@ class TrainingDiverged(RuntimeError):
     """Raised when losses or parameters stop being finite."""
 
 
+@dataclasses.dataclass
+class Stages:
+    """Seconds of each stage of a launch (eval.json's ``stages``; ``None``: the stage did not
+    run in this launch, e.g. ``restore_s`` on a fresh run or ``init_*`` on a resume)."""
+
+    construct_s: float | None = None  # the trainer and its programs' Python objects
+    restore_s: float | None = None  # a resume's checkpoint
+    init_lower_s: float | None = None  # trace (or load the stored program) and lower
+    init_compile_s: float | None = None
+    warmup_s: float | None = None  # the random warm-up's collection
+    first_checkpoint_s: float | None = None
+    epoch_lower_s: float | None = None
+    epoch_compile_s: float | None = None
+    eval_lower_s: float | None = None
+    eval_compile_s: float | None = None
+    epochs: list = dataclasses.field(default_factory=list)  # per epoch: train_s, eval_s, host_s
+
+    def as_dict(self) -> dict:
+        return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
+
+
 class LiveBar:
     """In-epoch progress on a terminal, redrawn in place by a host thread while the compiled
     epoch runs: the seconds so far and, from the second epoch on, the share of the previous
@@ -133,13 +154,14 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = 
         log(f"budget: {c.transitions_run:,} of total_transitions {c.total_transitions:,} per seed "
             f"({c.warmup_steps * c.num_envs:,} warm-up, then {c.epochs} epochs x {c.steps_per_epoch} vector "
             f"steps x {c.env_steps_per_step} env steps x {c.num_envs} envs)")  # fmt: skip
-    stages, t = {}, time.perf_counter()
+    stages, t = Stages(), time.perf_counter()
     trainer = sp.trainer_for(spec)
     memory.check(spec, trainer.env.obs_size, trainer.env.action_size)  # before anything is written
     run_dir = resume if resume is not None else runs.new_run_dir(out, spec)
     with run_state.writing(run_dir, log):
-        return _train(_Run(spec, trainer, run_dir, resume is not None, log, stages), t, stop_after,
-                      checkpoint_every)  # fmt: skip
+        r = _Run(spec=spec, trainer=trainer, run_dir=run_dir, resuming=resume is not None, log=log,
+                 stages=stages)  # fmt: skip
+        return _train(r, t, stop_after, checkpoint_every)
 
 
 class _Run(NamedTuple):
@@ -148,7 +170,7 @@ class _Run(NamedTuple):
     run_dir: str
     resuming: bool
     log: object
-    stages: dict
+    stages: Stages
 
 
 def finished_note(run_dir: str, spec: sp.RunSpec) -> str | None:
@@ -170,27 +192,33 @@ def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> 
     keys, hp = seed_keys(spec.seed, spec.num_seeds), spec.hp
     # plain jit on one device; seeds (and envs) split over all visible devices otherwise
     init_fn, epoch_fn, eval_fn, place = _stored(spec, runner_fns(r.trainer, keys, hp))
-    t = _stage(stages, "construct", t)
+    stages.construct_s, t = _since(t)
     mngr = None
     try:  # until the checkpoint being written in the background is on disk (also on errors, Ctrl-C)
         if r.resuming and (_has_checkpoint(run_dir) or os.path.exists(os.path.join(run_dir, "metrics.csv"))):
             ts, start, csv_log = _resume(run_dir, init_fn, keys, hp, place, log)
             mngr = ckpt.manager(run_dir, asynchronous=True)  # after _resume deleted what does not load
-            t = _stage(stages, "restore", t)
+            stages.restore_s, t = _since(t)
         else:
             if r.resuming:
                 log(f"{run_dir} has no checkpoint (it stopped before its first): starting it over")
             mngr = ckpt.manager(run_dir, asynchronous=True)
             ts, start, csv_log, t = _fresh(r, mngr, init_fn, keys, hp, t)
-        epoch_c, t = _program(stages, "epoch", epoch_fn, (ts, hp), t)
-        eval_c, t = _program(stages, "eval", eval_fn, (jax.eval_shape(lambda t: t, ts),), t)
-        ep_s, ev_s = (stages[f"{p}_lower_s"] + stages[f"{p}_compile_s"] for p in ("epoch", "eval"))
+        epoch_c, stages.epoch_lower_s, stages.epoch_compile_s, t = _program(epoch_fn, (ts, hp), t)
+        eval_c, stages.eval_lower_s, stages.eval_compile_s, t = _program(
+            eval_fn, (jax.eval_shape(lambda t: t, ts),), t
+        )
+        ep_s, ev_s = (
+            stages.epoch_lower_s + stages.epoch_compile_s,
+            stages.eval_lower_s + stages.eval_compile_s,
+        )
         log(f"compiled epoch + eval in {ep_s + ev_s:.1f} s (epoch {ep_s:.1f} s, eval {ev_s:.1f} s); "
             f"{spec.num_seeds} seed(s) x {c.num_envs} envs, {c.steps_per_epoch} vector steps x "
             f"{c.updates_per_step} updates per epoch")  # fmt: skip
         last = c.epochs if stop_after is None else min(c.epochs, start + stop_after)
-        loop = _Loop(spec, run_dir, mngr, csv_log, epoch_c, eval_c, live, log, checkpoint_every)
-        ts, ev, run_s, stages["epochs"] = _epochs(loop, ts, start, last)
+        loop = EpochLoop(spec=spec, run_dir=run_dir, mngr=mngr, csv_log=csv_log, epoch_c=epoch_c,
+                         eval_c=eval_c, live=live, log=log, checkpoint_every=checkpoint_every)  # fmt: skip
+        ts, ev, run_s, stages.epochs = _epochs(loop, ts, start, last)
     finally:
         if mngr is not None:
             ckpt.close(mngr)
@@ -217,16 +245,16 @@ def _has_checkpoint(run_dir: str) -> bool:
 def _fresh(r: _Run, mngr, init_fn, keys, hp, t: float):
     """Initialise, collect the warm-up and write checkpoint 0: ``(ts, 0, csv_log, t)``."""
     stages, c = r.stages, r.spec.train
-    init_c, t = _program(stages, "init", init_fn, (keys, hp), t)
+    init_c, stages.init_lower_s, stages.init_compile_s, t = _program(init_fn, (keys, hp), t)
     ts = jax.block_until_ready(init_c(keys, hp))  # warm-up collection included
-    t = _stage(stages, "warmup", t)
+    stages.warmup_s, t = _since(t)
     ckpt.save(mngr, 0, ts)  # on disk before compiling (a write alongside slows the compile)
-    t = _stage(stages, "first_checkpoint", t)
+    stages.first_checkpoint_s, t = _since(t)
     csv_log = runs.CsvLog(os.path.join(r.run_dir, "metrics.csv"))
     r.log(f"run dir {r.run_dir}")
-    init_s = stages["init_lower_s"] + stages["init_compile_s"]
+    init_s = stages.init_lower_s + stages.init_compile_s
     r.log(f"init + warm-up ({c.warmup_steps * c.num_envs} transitions per seed): compile {init_s:.1f} s, "
-          f"run {stages['warmup_s']:.1f} s, checkpoint {stages['first_checkpoint_s']:.1f} s")  # fmt: skip
+          f"run {stages.warmup_s:.1f} s, checkpoint {stages.first_checkpoint_s:.1f} s")  # fmt: skip
     return ts, 0, csv_log, t
 
 
@@ -246,22 +274,20 @@ def _stored(spec: sp.RunSpec, fns: tuple) -> tuple:
             StoredProgram(eval_fn, "eval", context, store, **kw), place)  # fmt: skip
 
 
-def _program(stages: dict, name: str, fn, args: tuple, t: float):
-    """Program ``name`` traced and compiled for ``args`` (the persistent compilation cache
-    may answer the compile), both times recorded in ``stages``; returns it and the time now."""
+def _program(fn, args: tuple, t: float):
+    """``fn`` traced and compiled for ``args`` (the persistent compilation cache may answer the
+    compile): ``(program, lower seconds, compile seconds, the time now)``."""
     lowered = fn.lower(*args)
     t1 = time.perf_counter()
     exe = lowered.compile()
     now = time.perf_counter()
-    stages.update({f"{name}_lower_s": t1 - t, f"{name}_compile_s": now - t1})
-    return exe, now
+    return exe, t1 - t, now - t1, now
 
 
-def _stage(stages: dict, name: str, t: float) -> float:
-    """Record ``stages[name + "_s"]``, the seconds since ``t``; returns the time now."""
+def _since(t: float) -> tuple[float, float]:
+    """``(seconds since t, the time now)``."""
     now = time.perf_counter()
-    stages[f"{name}_s"] = now - t
-    return now
+    return now - t, now
 
 
 def _resume(run_dir: str, init_fn, keys, hp, place, log):
@@ -284,21 +310,25 @@ def _resume(run_dir: str, init_fn, keys, hp, place, log):
     return place(state), start, csv_log
 
 
-class _Loop(NamedTuple):
+@dataclasses.dataclass(frozen=True)
+class EpochLoop:
+    """What the epochs of one launch share."""
+
     spec: sp.RunSpec
     run_dir: str
-    mngr: object
+    mngr: object  # the writer's orbax checkpoint manager
     csv_log: runs.CsvLog
     epoch_c: object  # compiled epoch program
     eval_c: object  # compiled evaluation program
-    live: LiveBar | None
-    log: object
+    live: LiveBar | None  # the in-epoch bar on a terminal
+    log: object  # print, or a no-op when not verbose
     checkpoint_every: int
 
 
-def _epochs(loop: _Loop, ts, start: int, last: int):
+def _epochs(loop: EpochLoop, ts, start: int, last: int):
     """Epochs ``start + 1 … last``: train, check, evaluate, log, select, checkpoint."""
-    spec, run_dir, mngr, csv_log, epoch_c, eval_c, live, log, every = loop
+    spec, run_dir, mngr, csv_log = loop.spec, loop.run_dir, loop.mngr, loop.csv_log
+    epoch_c, eval_c, live, log, every = loop.epoch_c, loop.eval_c, loop.live, loop.log, loop.checkpoint_every
     tb = report.tensorboard(run_dir)
     run_s, ev, timings = 0.0, None, []
     for epoch in range(start + 1, last + 1):
@@ -341,12 +371,12 @@ def _epochs(loop: _Loop, ts, start: int, last: int):
     return ts, ev, run_s, timings
 
 
-def _finish(run_dir: str, spec: sp.RunSpec, ev, compile_s: float, run_s: float, stages: dict) -> dict:
+def _finish(run_dir: str, spec: sp.RunSpec, ev, compile_s: float, run_s: float, stages: Stages) -> dict:
     seed_evals = [{k: float(np.asarray(v)[i]) for k, v in ev.items()} for i in range(spec.num_seeds)]
     seeds = list(range(spec.seed, spec.seed + spec.num_seeds))
     summary = dict(run_dir=run_dir, env=spec.env, algo=spec.algo, seeds=seeds, final_eval=seed_evals,
                    compile_s=compile_s, train_s=run_s, device=jax.devices()[0].device_kind,
-                   stages=stages)  # fmt: skip
+                   stages=stages.as_dict())  # fmt: skip
     if spec.is_quadrotor:
         summary["paper_ttd3"] = PAPER_TTD3
         summary["beats_paper"] = [beats_paper(s) for s in seed_evals]
