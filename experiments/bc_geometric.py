@@ -74,7 +74,7 @@ def test_errors(cfg, controller) -> tuple[float, float]:
 
 def clone_controller(nets, params, stats):
     """The cloned actor as a controller (raw observations, normalised by ``stats``)."""
-    return policy_controller(lambda obs: nets.actor.apply(params, networks.normalize(stats, obs)))
+    return policy_controller(lambda obs: networks.policy(nets, params, stats, obs))
 
 
 def main(argv=None) -> int:

@@ -52,13 +52,12 @@ def probe(run_dir: str, epoch: int | None = None, seed_index: int = 0, track: st
     s0 = env.reset(jax.random.PRNGKey(0))
     st = jax.tree.map(lambda x: x[seed_index], loaded.state)
     stats = st.obs_stats if spec.train.normalize_obs else None
-    obs = networks.normalize(stats, s0.obs)
     nets = trainer.nets
-    a_pi = nets.actor.apply(st.actor, obs)
+    a_pi = networks.policy(nets, st.actor, stats, s0.obs)
     a_hover = hover_action(cfg).astype(a_pi.dtype)
 
     def q(a):
-        return twin_q(nets, st.critic, obs, a)
+        return twin_q(nets, st.critic, stats, s0.obs, a)
 
     steps = jnp.concatenate([delta * jnp.eye(4), -delta * jnp.eye(4)])
     moved = jnp.clip(a_pi[None] + steps, -1.0, 1.0)

@@ -172,7 +172,7 @@ def test_probe_critics_reads_a_run_and_matches_a_direct_critic_call(tmp_path, ca
         jax.tree.map(lambda x: x[0], loaded.state.obs_stats), env.reset(jax.random.PRNGKey(0)).obs
     )
     hover = hover_action(env.config)
-    np.testing.assert_allclose(r["q_hover"], twin_q(trainer.nets, critic, obs, hover), rtol=1e-6)
+    np.testing.assert_allclose(r["q_hover"], twin_q(trainer.nets, critic, None, obs, hover), rtol=1e-6)
     np.testing.assert_allclose(r["hover"], hover, atol=1e-7)
     assert r["hover"][0] == pytest.approx(0.0, abs=1e-6)  # hover-centred thrust: a0 = 0 is hover
     assert all(-1.0 <= a <= 1.0 for a in r["policy"])

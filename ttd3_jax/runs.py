@@ -51,8 +51,10 @@ def new_run_dir(out: str, spec: sp.RunSpec) -> str:
             continue
         except OSError as e:
             raise ValueError(f"--out {out!r}: cannot create {path!r} ({e.strerror})") from None
-    with open(os.path.join(path, CONFIG), "w") as fh:
+    tmp = os.path.join(path, CONFIG + ".tmp")  # whole or not at all: a kill may land mid-write
+    with open(tmp, "w") as fh:
         json.dump(sp.to_dict(spec), fh, indent=2)
+    os.replace(tmp, os.path.join(path, CONFIG))
     return path
 
 

@@ -20,6 +20,7 @@ import errno
 import logging
 import os
 import sys
+import threading
 
 import tyro
 
@@ -131,7 +132,7 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
 
 def main(argv: list[str] | None = None) -> int:
     """The CLI (see the module docstring); returns the exit status."""
-    logging.getLogger("absl").setLevel(logging.ERROR)  # orbax's warnings are ours to phrase
+    _quiet_background_failures()  # orbax's warnings and errors are ours to phrase
     try:
         known, spec = parse(list(sys.argv[1:] if argv is None else argv))
         if known.remove is not None:
@@ -144,19 +145,33 @@ def main(argv: list[str] | None = None) -> int:
             run(resume=known.resume)
         else:
             run(spec, out=known.out)
-    except (FileNotFoundError, ValueError) as e:  # RunLocked included
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except TrainingDiverged as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 3
-    except Exception as e:  # a full disk or device memory: one line with what to do, no traceback
-        message = failure_message(e)
-        if message is None:
-            raise
-        print(f"error: {message}", file=sys.stderr)
-        return 1
+    except Exception as e:  # one line with what to do, no traceback
+        message = failure_message(e)  # first: a full disk reaches us as orbax's ValueError too
+        if message is not None:
+            print(f"error: {message}", file=sys.stderr)
+            return 1
+        if isinstance(e, FileNotFoundError | ValueError):  # RunLocked included
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        if isinstance(e, TrainingDiverged):
+            print(f"error: {e}", file=sys.stderr)
+            return 3
+        raise
     return 0
+
+
+def _quiet_background_failures() -> None:
+    """orbax saves in background threads; when a save fails (a full disk), its threads log
+    the error and their asyncio loops print 'Event loop is closed' tracebacks before the
+    failure reaches the runner, which reports it in one line.  Keep those off stderr: the
+    loggers at CRITICAL, and a closed event loop's RuntimeError not printed (nothing else is
+    filtered)."""
+    for name in ("absl", "asyncio", "concurrent.futures"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+    closed = lambda e: isinstance(e, RuntimeError) and "Event loop is closed" in str(e)  # noqa: E731
+    thread_hook, hook = threading.excepthook, sys.excepthook  # tensorstore callbacks print through sys
+    threading.excepthook = lambda args: None if closed(args.exc_value) else thread_hook(args)
+    sys.excepthook = lambda kind, value, tb: None if closed(value) else hook(kind, value, tb)
 
 
 def _chain(e: BaseException):
