@@ -197,4 +197,9 @@ def failure_message(e: Exception) -> str | None:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    code = main()
+    if code == 1:  # a full disk or no memory: orbax's save threads may still be failing, and
+        sys.stdout.flush()  # their shutdown would print after the one line; the run's state is
+        sys.stderr.flush()  # already written (its lock released), so end here, without them
+        os._exit(code)
+    raise SystemExit(code)
