@@ -31,7 +31,7 @@ from ttd3_jax.train import main
         ),
         (["--hp.lam", "inf"], "hp.lam must be a finite number"),
         (["--hp.beta", "nan"], "hp.beta must be a finite number"),
-        (["--task.e-max", "-1"], "EnvConfig.e_max must be > 0"),
+        (["--task.e-max", "-1"], "EnvConfig.e_max must be a finite number > 0"),
         (["--task.obs-frame", "heading"], "obs_frame must be one of"),
         (["--task.track", "spiral_rt"], "task.track must be 'train'"),
         (["--task.los-seed", "3"], "task.los_seed 0"),
