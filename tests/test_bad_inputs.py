@@ -150,7 +150,11 @@ def test_the_migration_knows_only_the_fields_added_later():
     with pytest.raises(
         ValueError, match='"train.critic_arch", "task.obs_memory", "task.train_tracks" are missing'
     ):
-        sp.from_dict({**legacy, "format": sp.CONFIG_FORMAT})  # format 1 files hold every field
+        sp.from_dict({**legacy, "format": 1})  # format 1 files hold every field but n_step
+    one = {**d, "format": 1, "train": {k: v for k, v in d["train"].items() if k != "n_step"}}
+    assert sp.from_dict(one) == tiny()  # n_step came with format 2: a format-1 file gets 1
+    with pytest.raises(ValueError, match='"train.n_step" is missing'):
+        sp.from_dict({**one, "format": sp.CONFIG_FORMAT})
     legacy["task"].pop("lookahead_k")
     with pytest.raises(ValueError, match='field "task.lookahead_k" is missing'):
         sp.from_dict(legacy)  # no history: refused

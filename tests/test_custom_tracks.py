@@ -188,7 +188,7 @@ def test_users_training_tracks_join_the_mixture_and_nothing_else_changes(tmp_pat
     np.testing.assert_allclose(pb[~is_hop], pa[~is_hop], atol=1e-5)  # the others: the mixture's own draws
     with pytest.raises(ValueError, match="train_tracks: '/nope.csv' is not a file"):
         make_config("practical", train_tracks=("/nope.csv",))
-    with pytest.raises(ValueError, match=r"train_tracks_weight must be in \(0, 1\]"):
+    with pytest.raises(ValueError, match=r"train_tracks_weight must be a finite number in \(0, 1\], got 0.0"):
         make_config("practical", train_tracks=(path,), train_tracks_weight=0.0)
 
 

@@ -31,8 +31,8 @@ def test_preset_changes_route_to_the_train_config_or_the_spec():
     s = sp.preset("fast", num_envs=8, seed=3, algo="td3", hp=Hyper(tau=0.01))
     assert s.train.num_envs == 8 and s.seed == 3 and s.algo == "td3" and s.hp.tau == 0.01
     assert sp.replace(s, epochs=4).train.epochs == 4 and sp.replace(s) is s
-    with pytest.raises(ValueError, match=r"unknown run spec field\(s\) \['n_step'\]"):
-        sp.preset("fast", n_step=3)
+    with pytest.raises(ValueError, match=r"unknown run spec field\(s\) \['n_quantiles'\]"):
+        sp.preset("fast", n_quantiles=3)
 
 
 @pytest.mark.parametrize(
@@ -100,7 +100,7 @@ def test_config_json_round_trip_keeps_every_field():
 @pytest.mark.parametrize(
     "edit, match",
     [
-        (lambda d: d["train"].update(n_step=3), 'can not match "n_step" to any data class field'),
+        (lambda d: d["train"].update(n_quantiles=3), 'can not match "n_quantiles" to any data class field'),
         (
             lambda d: d["task"].update(e_max="big"),
             'field "task.e_max" - should be "float" instead of value "big"',

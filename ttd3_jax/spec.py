@@ -22,18 +22,19 @@ from ttd3_jax.td3.trainer import Trainer, make_trainer
 QUADROTOR = "quadrotor"
 PRESETS = ("fast", "fast_dpg", "fast_model_free", "paper", "mujoco")
 SEED_LIMIT = 2**32  # seeds are uint32 PRNG keys: seed + num_seeds - 1 must stay below this
-CONFIG_FORMAT = 1  # config.json's "format"; files without one were written before it (format 0)
-# Fields added to the run spec after runs were first saved (2026-11-22), each with the value
-# that reproduces what a run saved before it did.  Only format-0 files may lack them.
+CONFIG_FORMAT = 2  # config.json's "format"; files without one were written before it (format 0)
+# Fields added to the run spec after runs were first saved (2026-11-22): for each, the first
+# format whose files hold it, and the value that reproduces what a run saved before it did.
 ADDED_FIELDS = {
-    ("train", "model_horizon"): 0,  # 2026-12-01: the model-based actor update
-    ("train", "critic_arch"): "mlp",  # 2026-12-03: residual critics
-    ("task", "err_scale"): 0.02,  # 2026-12-03: err_cost="log"
-    ("task", "memory_tau"): 1.0,  # 2026-12-03: the observation's memory
-    ("task", "obs_memory"): False,
-    ("task", "obs_privileged"): False,  # 2026-12-03: the critics' privileged inputs
-    ("task", "train_tracks"): [],  # 2026-12-03: users' tracks in the training mixture
-    ("task", "train_tracks_weight"): 0.25,
+    ("train", "model_horizon"): (1, 0),  # 2026-12-01: the model-based actor update
+    ("train", "critic_arch"): (1, "mlp"),  # 2026-12-03: residual critics
+    ("task", "err_scale"): (1, 0.02),  # 2026-12-03: err_cost="log"
+    ("task", "memory_tau"): (1, 1.0),  # 2026-12-03: the observation's memory
+    ("task", "obs_memory"): (1, False),
+    ("task", "obs_privileged"): (1, False),  # 2026-12-03: the critics' privileged inputs
+    ("task", "train_tracks"): (1, []),  # 2026-12-03: users' tracks in the training mixture
+    ("task", "train_tracks_weight"): (1, 0.25),
+    ("train", "n_step"): (2, 1),  # 2026-12-05: n-step returns
 }
 
 
@@ -183,18 +184,19 @@ def to_dict(spec: RunSpec) -> dict:
 
 def migrate(d) -> dict:
     """``config.json`` as any version wrote it, in the current layout (without ``format``).
-    A format-0 file (no ``format``: written before 2026-12-04) may lack the fields in
-    :data:`ADDED_FIELDS`, which take the value runs had before them; nothing else is filled."""
+    A file of an earlier format (0: no ``format``, written before 2026-12-04) may lack the
+    fields :data:`ADDED_FIELDS` added in later formats, which take the value runs had before
+    them; nothing else is filled."""
     if not isinstance(d, dict):
         raise ValueError(f"run spec: the file must hold a JSON object, got {type(d).__name__}")
     version = d.get("format", 0)
     out = {k: v for k, v in d.items() if k != "format"}
     if version == CONFIG_FORMAT:
         return out
-    if version != 0:
-        raise ValueError(f"run spec: format {version!r} is not one this version reads (0, {CONFIG_FORMAT})")
-    for (group, name), value in ADDED_FIELDS.items():
-        if isinstance(out.get(group), dict) and name not in out[group]:
+    if version not in range(CONFIG_FORMAT) or isinstance(version, bool):
+        raise ValueError(f"run spec: format {version!r} is not one this version reads (0 to {CONFIG_FORMAT})")
+    for (group, name), (since, value) in ADDED_FIELDS.items():
+        if version < since and isinstance(out.get(group), dict) and name not in out[group]:
             out[group] = {**out[group], name: value}
     return out
 
