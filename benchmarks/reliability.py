@@ -111,8 +111,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--full-disk", type=int, default=0, metavar="N", help="only the full disk, N times")
     args = ap.parse_args()
     logging.getLogger("absl").setLevel(logging.ERROR)  # orbax's notes on read-only managers
+    if args.full_disk:
+        with tempfile.TemporaryDirectory() as tmp:
+            for i in range(args.full_disk):
+                print(full_disk(os.path.join(tmp, str(i)), os.path.join(tmp, "xla")), flush=True)
+        return
     n, rng = (8 if args.quick else 40), np.random.default_rng(args.seed)
     print(f"corrupting checkpoint 2 of 2 ({n} trials):")
     print("newest checkpoint:", corrupt_newest(n, rng))

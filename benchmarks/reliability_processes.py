@@ -137,12 +137,15 @@ def full_disk(tmp: str, cache: str) -> dict:
         filler = os.path.join(mnt, "filler")
         subprocess.run(["dd", "if=/dev/zero", f"of={filler}", "bs=1M"], capture_output=True)
         code = t.finish()
-        errors = [line for line in t.lines if "error" in line.lower() or "Traceback" in line]
+        tracebacks = sum("Traceback" in line for line in t.lines)
+        progress = [i for i, line in enumerate(t.lines) if line.startswith("[")]
+        after = len(t.lines) - 1 - max(progress, default=-1)  # the one error line, and nothing else
         os.remove(filler)
         r = Trainer(["--resume", run_dir_of(out)], cache)
         resumed = r.finish()
         last = t.lines[-1] if t.lines else ""
-        return {"full disk": f"exit {code}; last line {last!r}; error/Traceback lines: {len(errors)}; "
+        return {"full disk": f"exit {code}; last line {last!r}; Traceback lines: {tracebacks}; "
+                f"lines after the last progress line: {after}; "
                 f"after freeing space, --resume exit {resumed}"}  # fmt: skip
     finally:
         subprocess.run(["umount", mnt], capture_output=True)

@@ -182,6 +182,33 @@ def test_a_full_disk_or_no_memory_ends_in_one_line_with_what_to_do():
     assert train.failure_message(RuntimeError("something else")) is None
 
 
+QUIET_PROBE = """
+import threading
+from ttd3_jax import train
+train._quiet_background_failures()
+class Closed:  # an exception in __del__ reaches sys.unraisablehook, as tensorstore's threads' do
+    def __init__(self, text):
+        self.text = text
+    def __del__(self):
+        raise RuntimeError(self.text)
+Closed("Event loop is closed")
+def fail(text):
+    raise RuntimeError(text)
+thread = threading.Thread(target=fail, args=("Event loop is closed",))
+thread.start(); thread.join()
+Closed("another failure")
+"""
+
+
+def test_a_failing_background_save_prints_no_closed_event_loop_traceback():
+    """orbax/tensorstore threads report 'Event loop is closed' through sys.unraisablehook and
+    threading.excepthook while a save fails on a full disk; only those are kept off stderr."""
+    probe = subprocess.run([sys.executable, "-c", QUIET_PROBE], capture_output=True, text=True, timeout=120)
+    assert probe.returncode == 0, probe.stderr
+    assert "Event loop is closed" not in probe.stderr
+    assert "RuntimeError: another failure" in probe.stderr  # other errors still print
+
+
 def small_state(seed: int) -> dict:
     rng = np.random.default_rng(seed)
     return {"buffer": rng.standard_normal((256, 8)).astype(np.float32), "step": np.array([seed], np.int32)}

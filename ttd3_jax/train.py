@@ -169,9 +169,11 @@ def _quiet_background_failures() -> None:
     for name in ("absl", "asyncio", "concurrent.futures"):
         logging.getLogger(name).setLevel(logging.CRITICAL)
     closed = lambda e: isinstance(e, RuntimeError) and "Event loop is closed" in str(e)  # noqa: E731
-    thread_hook, hook = threading.excepthook, sys.excepthook  # tensorstore callbacks print through sys
+    thread_hook, hook = threading.excepthook, sys.excepthook
+    unraisable = sys.unraisablehook  # tensorstore's C++ threads report through this one
     threading.excepthook = lambda args: None if closed(args.exc_value) else thread_hook(args)
     sys.excepthook = lambda kind, value, tb: None if closed(value) else hook(kind, value, tb)
+    sys.unraisablehook = lambda args: None if closed(args.exc_value) else unraisable(args)
 
 
 def _chain(e: BaseException):
