@@ -24,6 +24,7 @@ import tyro
 
 from ttd3_jax import report, runs
 from ttd3_jax.cli_checks import bool_flags, refuse_bool_values, writable_dir, writable_file
+from ttd3_jax.console import show_messages
 from ttd3_jax.control import generalization as gen
 from ttd3_jax.control.evaluator import (
     CONTROLLERS,
@@ -279,6 +280,7 @@ def notes(args, cfg: EnvConfig, tracks: dict | None, header: dict) -> None:
 
 def main(argv=None) -> int:
     logging.getLogger("absl").setLevel(logging.ERROR)  # orbax's warnings are ours to phrase
+    show_messages()  # the package's notes (a damaged file, the compile cache), as plain lines
     ap = build_parser()
     argv, task_args = split_task_args(list(sys.argv[1:] if argv is None else argv))
     args = ap.parse_args(argv)
