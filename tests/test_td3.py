@@ -179,7 +179,8 @@ def test_n_step_returns_follow_one_env_and_stop_at_episode_ends_and_the_newest_r
     done = jnp.zeros(10).at[4].set(1.0).at[7].set(1.0)  # env 0 ends at row 4 (truncated), env 1 at 7
     term = jnp.zeros(10).at[7].set(1.0)  # row 7: a crash
     buf = _two_env_buffer(done, term, rows=10)
-    batch, disc, r1 = jax.jit(lambda k: rb.sample_n_step(buf, k, 6, 3, 2, g))(jax.random.PRNGKey(0))
+    draw = jax.jit(lambda k: rb.sample_n_step(buf, k, 6, n=3, num_envs=2, gamma=g))
+    batch, disc, r1 = draw(jax.random.PRNGKey(0))
     # rows the sample drew
     drawn = np.asarray(batch.obs[:, 0]).astype(int)
     want = {0: (0 + g * 2 + g * g * 4, 4.5, 0.0, 3),  # ends at row 4 (truncated): bootstraps from 4.5
@@ -201,7 +202,8 @@ def test_n_step_returns_wrap_around_the_ring_and_start_at_the_oldest_row():
     done = jnp.zeros(20)
     buf = _two_env_buffer(done, jnp.zeros(20), rows=20, capacity=16)  # rows 16-19 overwrote 0-3
     assert int(buf.pos) == 4 and int(buf.size) == 16
-    batch, disc, _ = jax.jit(lambda k: rb.sample_n_step(buf, k, 64, 3, 2, 0.5))(jax.random.PRNGKey(1))
+    draw = jax.jit(lambda k: rb.sample_n_step(buf, k, 64, n=3, num_envs=2, gamma=0.5))
+    batch, disc, _ = draw(jax.random.PRNGKey(1))
     for i in range(64):
         first = float(batch.obs[i, 0])  # the step number written in that row
         m = round(float(np.log(float(disc[i])) / np.log(0.5)))
@@ -446,3 +448,12 @@ def test_the_model_based_update_never_moves_the_actor(model_trainer):
         out, _ = jax.jit(lambda ts, j=j: model_based.update(t.setup, ts, s.hp, jax.random.PRNGKey(5), j))(ts)
         assert not changed(out.actor, ts.actor) and changed(out.critic, ts.critic)
         assert changed(out.target_critic, ts.target_critic) == (j == 1)
+
+
+def test_the_model_based_update_needs_an_env_that_gradients_flow_through():
+    """The one check of the rule, where the trainer is made: any env, named in its field."""
+    s = tiny(model_horizon=2)
+    rigid = sp.env_spec(s)._replace(differentiable=False)
+    with pytest.raises(ValueError, match=r"model_horizon must be 0 for this env: .*, got 2"):
+        T.make_trainer(s.train, rigid)
+    assert T.make_trainer(dataclasses.replace(s.train, model_horizon=0), rigid).setup.env is rigid
