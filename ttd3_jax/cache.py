@@ -252,7 +252,7 @@ class StoredProgram:
     (``jax.debug.print``) cannot be stored: it runs as plain ``jax.jit`` with a one-line note.
     ``donate_argnums`` as for ``jax.jit``."""
 
-    def __init__(self, fn: Callable, name: str, context: str, directory: str,
+    def __init__(self, fn: Callable, name: str, context: str, directory: str, *,
                  donate_argnums: Sequence[int] = (), context_files=()):  # fmt: skip
         self.fn, self.name, self.directory = fn, name, directory
         self.context = repr((context, file_digests(context_files)))
