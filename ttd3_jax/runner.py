@@ -16,7 +16,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -174,7 +173,10 @@ def _quiet(message: str) -> None:
     """``log`` of a run that is not verbose."""
 
 
-class _Run(NamedTuple):
+@dataclasses.dataclass(frozen=True)
+class _Run:
+    """What one launch of :func:`run` works with."""
+
     spec: sp.RunSpec
     trainer: object
     run_dir: str
