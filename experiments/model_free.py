@@ -25,6 +25,7 @@ import sys
 import time
 
 from ttd3_jax import spec as sp
+from ttd3_jax.console import show_messages
 from ttd3_jax.control.paper import PAPER_TTD3
 from ttd3_jax.report import device_description
 from ttd3_jax.runner import run
@@ -207,6 +208,7 @@ def main(argv=None):
     ap.add_argument("--table-only", action="store_true", help="only rebuild table.md")
     ap.add_argument("--resume", default=None, help="continue this interrupted run of the one --direction")
     a = ap.parse_args(argv)
+    show_messages()  # the runner's log, as plain lines
     if a.list:
         for name, (what, e, c, h) in DIRECTIONS.items():
             print(f"{name:<16} {what}\n{'':<16} task={e} train={c} hp={h}")

@@ -93,8 +93,10 @@ def run_dir_of(out: str, task: str, algo: str) -> str | None:
 
 def run_one(task: str, algo: str, a: argparse.Namespace) -> None:
     """Train one task/algorithm (all seeds in one program), resuming if it was interrupted."""
+    from ttd3_jax.console import show_messages
     from ttd3_jax.runner import run
 
+    show_messages()  # the runner's log, as plain lines
     c = task_config(task, algo, a)
     d = run_dir_of(a.out, task, algo)
     if d is not None and os.path.exists(os.path.join(d, "eval.json")):

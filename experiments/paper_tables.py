@@ -38,6 +38,7 @@ import numpy as np
 
 from ttd3_jax import runner
 from ttd3_jax import spec as sp
+from ttd3_jax.console import show_messages
 from ttd3_jax.control.closed_loop import energy_paper_map, test_tracks, to_paper_map
 from ttd3_jax.control.evaluator import Evaluator, Trace, controller_build, index, summarize
 from ttd3_jax.control.paper import PAPER, PAPER_TTD3
@@ -339,6 +340,7 @@ def write_csv(path: str, res: dict, n_seeds: int) -> None:
 
 
 def main(argv=None) -> int:
+    show_messages()  # the runner's log, as plain lines
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     for row, (algo, preset, flag) in LEARNED.items():
         what = f"run directory of the row {row!r} (--preset {preset} --algo {algo}; default: train one)"

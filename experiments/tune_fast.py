@@ -22,6 +22,7 @@ import dataclasses
 import statistics
 
 from ttd3_jax import spec as sp
+from ttd3_jax.console import show_messages
 from ttd3_jax.runner import run
 from ttd3_jax.runs import read_metrics
 from ttd3_jax.sim.trajectories import TrackConfig
@@ -87,6 +88,7 @@ def main(argv=None):
     ap.add_argument("--out", default="runs/tune_fast")
     ap.add_argument("--list", action="store_true")
     args = ap.parse_args(argv)
+    show_messages()  # the runner's log, as plain lines
     if args.list:
         for name, (e, c, h) in VARIANTS.items():
             print(f"{name:<24} task={e} train={c} hp={h}")

@@ -10,9 +10,14 @@ results do not change.
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 import tempfile
+
+import pytest
+
+from ttd3_jax.console import PACKAGE_LOGGER, show_messages
 
 # created here unless the environment names one: pytest-xdist's workers inherit the
 # controller's, so that all of them share one cache (and only the controller removes it)
@@ -30,3 +35,15 @@ def pytest_unconfigure(config):
 
 def pytest_report_header(config):
     return f"XLA compilation cache (shared by the workers): {os.environ['JAX_COMPILATION_CACHE_DIR']}"
+
+
+@pytest.fixture
+def shown_messages():
+    """The package's log messages shown for one test as the command lines show them (the text
+    alone: INFO on stdout, warnings on stderr), to read with ``capsys`` or ``capfd``."""
+    log = logging.getLogger(PACKAGE_LOGGER)
+    handlers, level, propagate = list(log.handlers), log.level, log.propagate
+    show_messages()
+    yield
+    log.handlers[:], log.propagate = handlers, propagate
+    log.setLevel(level)

@@ -115,7 +115,7 @@ def test_a_stored_file_that_does_not_load_is_traced_again(tmp_path, how):
     assert os.path.getsize(path) == size  # replaced by the traced program
 
 
-def test_a_program_with_a_host_callback_runs_as_plain_jit(tmp_path, capfd):
+def test_a_program_with_a_host_callback_runs_as_plain_jit(tmp_path, capfd, shown_messages):
     """``jax.debug.print`` in a stored function: not stored, a one-line note, and it runs."""
 
     def noisy(x):

@@ -265,7 +265,7 @@ def test_robustness_returns_finite_statistics():
     nominal = cfg.for_eval("los_rt")
     seeds = (1, 2)
     conditions = ("nominal", "wind", "obs_noise", "delay")  # the mass conditions: test above
-    geo = evaluate_robustness(controller_build("geometric", nominal), None, cfg, seeds, conditions)
+    geo = evaluate_robustness(controller_build("geometric", nominal), None, cfg, seeds, conditions=conditions)
     assert tuple(geo) == conditions
     for name, r in geo.items():
         los = r["los_rt"]

@@ -59,7 +59,7 @@ def _break_newest(run_dir: str) -> int:
     return newest
 
 
-def test_a_checkpoint_that_does_not_load_is_skipped_by_resume_and_evaluate(tmp_path, capsys):
+def test_a_checkpoint_that_does_not_load_is_skipped_by_resume_and_evaluate(tmp_path, capsys, shown_messages):
     """Resume and evaluate fall back to the newest checkpoint that loads and say which one
     they skipped; the resumed run then equals an uninterrupted one."""
     s = tiny(epochs=3)
@@ -287,15 +287,6 @@ def test_find_run_takes_a_run_or_the_newest_run_under_an_out_directory(tmp_path)
     os.makedirs(tmp_path / "empty")
     with pytest.raises(FileNotFoundError, match="or its subdirectories: not a ttd3_jax run directory"):
         runs.find_run(str(tmp_path / "empty"))
-
-
-def test_the_budget_rounding_to_whole_epochs_is_printed(tmp_path, capsys):
-    s = tiny()
-    s = sp.replace(s, total_transitions=s.train.total_transitions + 100)
-    assert s.train.transitions_run < s.train.total_transitions
-    run(s, out=str(tmp_path), verbose=True, stop_after=0)
-    out = capsys.readouterr().out
-    assert f"budget: {s.train.transitions_run:,} of total_transitions {s.train.total_transitions:,}" in out
 
 
 def test_the_live_bar_counts_seconds_then_estimates_from_the_last_epoch(capsys):

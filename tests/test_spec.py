@@ -1,4 +1,5 @@
-"""The run spec: presets, validation before anything compiles, and config.json round trips."""
+"""The run spec: presets and their budgets, validation before anything compiles, and config.json
+round trips."""
 
 from __future__ import annotations
 
@@ -8,23 +9,65 @@ import json
 import pytest
 from tiny import tiny
 
+from ttd3_jax import runs
 from ttd3_jax import spec as sp
+from ttd3_jax.runner import run
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.dynamics import QuadParams
-from ttd3_jax.td3.config import Hyper, TrainConfig
+from ttd3_jax.td3.config import Hyper
 
 
-def test_presets_are_what_the_docs_say():
-    fast, dpg, paper, mujoco = (sp.preset(n) for n in ("fast", "fast_dpg", "paper", "mujoco"))
-    assert fast.train.model_horizon == 50 and dpg.train.model_horizon == 0
-    back = dict(model_horizon=0, total_transitions=450_000, epochs=15, updates_per_step=16)
-    assert dataclasses.replace(fast.train, **back) == dpg.train
-    assert fast.hp == dpg.hp.replace(lr_actor=1e-2)
-    assert fast.task == dpg.task == make_config("practical", hover_centered_thrust=True)
-    assert paper == sp.RunSpec() and paper.task == make_config("paper") and paper.train == TrainConfig()
-    assert mujoco.env == "hopper" and mujoco.train.num_envs == 1 and mujoco.hp.target_clip == 0.5
+def _changed(a, b) -> set[str]:
+    """The fields in which two dataclasses of one kind differ."""
+    return {f.name for f in dataclasses.fields(a) if getattr(a, f.name) != getattr(b, f.name)}
+
+
+def test_the_presets_differ_where_their_docs_say():
+    """``fast_dpg`` is ``fast`` with the paper's actor update (and the budget and update
+    rate that update needs), ``fast_model_free`` is ``fast_dpg`` observing its memory and
+    privileged critic inputs; ``paper`` is the defaults; unknown names are refused."""
+    fast, dpg, free = (sp.preset(n) for n in ("fast", "fast_dpg", "fast_model_free"))
+    assert fast.train.model_horizon > 0 and dpg.train.model_horizon == 0
+    assert _changed(fast.train, dpg.train) <= {
+        "model_horizon",
+        "total_transitions",
+        "epochs",
+        "updates_per_step",
+    }
+    assert _changed(fast.hp, dpg.hp) == {"lr_actor"} and fast.task == dpg.task
+    assert (free.train, free.hp) == (dpg.train, dpg.hp)
+    assert _changed(dpg.task, free.task) == {"obs_memory", "obs_privileged"}
+    assert sp.preset("paper") == sp.RunSpec() and sp.RunSpec().task == make_config("paper")
     with pytest.raises(ValueError, match="unknown preset 'quick'"):
         sp.preset("quick")
+
+
+@pytest.mark.parametrize("name", sp.PRESETS)
+def test_every_presets_budget_is_whole_epochs_within_its_total(name):
+    """A preset's budget, computed from its own config: the warm-up, then ``epochs`` epochs
+    of vector steps on every env, never past ``total_transitions`` and short of it by less
+    than one more vector step per epoch; the warm-up fills a first minibatch."""
+    c = sp.preset(name).train
+    vector = c.env_steps_per_step * c.num_envs  # transitions of one vector step
+    assert c.transitions_run == c.warmup_steps * c.num_envs + c.epochs * c.steps_per_epoch * vector
+    assert c.total_transitions - (c.epochs + 1) * vector < c.transitions_run <= c.total_transitions
+    assert c.warmup_steps * c.num_envs >= c.warmup_transitions >= c.batch_size
+
+
+def test_a_run_collects_the_budget_computed_from_its_config(tmp_path, capsys, shown_messages):
+    """A budget that is not whole epochs is rounded down, the runner says so, and the run
+    collects exactly that many transitions per seed: warm-up + epochs x vector steps x envs."""
+    s = tiny()
+    s = sp.replace(s, total_transitions=s.train.total_transitions + s.train.num_envs)  # one vector step more
+    c = s.train
+    assert c.transitions_run < c.total_transitions
+    run_dir = run(s, out=str(tmp_path))["run_dir"]
+    said = f"budget: {c.transitions_run:,} of total_transitions {c.total_transitions:,} per seed"
+    assert said in capsys.readouterr().out
+    last = runs.read_metrics(run_dir)[-1]
+    assert (
+        last["env_steps"] == c.transitions_run == (c.warmup_steps + c.epochs * c.steps_per_epoch) * c.num_envs
+    )
 
 
 def test_preset_changes_route_to_the_train_config_or_the_spec():
@@ -41,10 +84,6 @@ def test_preset_changes_route_to_the_train_config_or_the_spec():
         (dict(env="cartpole3d"), "env must be 'quadrotor' or one of"),
         (dict(seed=-1), "seed must be an integer >= 0"),
         (dict(num_seeds=0), "num_seeds must be an integer >= 1"),
-        (
-            dict(env="hopper", model_horizon=4, total_transitions=16 * 100),
-            "model_horizon > 0 back-propagates",
-        ),
         (dict(task=make_config("practical", track="spiral_rt")), "task.track must be 'train'"),
         (dict(task={"e_max": 1.0}), "task must be a EnvConfig"),
     ],

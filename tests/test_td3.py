@@ -84,90 +84,41 @@ def test_loop_lengths_and_transitions_run():
 # --------------------------------------------------------------------------- noise
 
 
+def _sigma_after(ns, rewards, cfg=None, hp=None, *, time_attenuating=True, n_tr=30_000, n_upd=7,
+                 episode_length=3000) -> nz.NoiseState:  # fmt: skip
+    """``noise.update`` on one minibatch of ``rewards`` (default config and ``Hyper``; 30k
+    transitions, 7 updates, 3000-step episodes: t = 10 episodes)."""
+    cfg, hp = NoiseConfig() if cfg is None else cfg, Hyper() if hp is None else hp
+    return nz.update(ns, cfg=cfg, time_attenuating=time_attenuating, hp=hp, rewards=jnp.asarray(rewards),
+                     n_tr=n_tr, n_upd=n_upd, episode_length=episode_length)  # fmt: skip
+
+
 def test_time_attenuating_sigma_matches_formula():
     hp = Hyper(beta=0.08, lam=0.01, u_max=1.0)
     cfg = NoiseConfig()
     r = jnp.array([-1.0, -0.5, -0.25, 0.0])
     ns = nz.init(hp, True)
     assert float(ns.sigma) == 1.0  # Alg. 1 starts at u_max
-    out = nz.update(
-        ns, cfg=cfg, time_attenuating=True, hp=hp, rewards=r, n_tr=30_000, n_upd=7, episode_length=3000
-    )
     delta = float(np.sum((r - r.min()) / (r.max() - r.min())))  # 0 + 0.5 + 0.75 + 1
     expected = 0.08 * np.exp(-0.01 * 10.0) + 0.92 * np.exp(-delta)
-    np.testing.assert_allclose(float(out.sigma), expected, rtol=1e-6)
-    mean = nz.update(
-        ns,
-        cfg=dataclasses.replace(cfg, delta_reduce="mean"),
-        time_attenuating=True,
-        hp=hp,
-        rewards=r,
-        n_tr=30_000,
-        n_upd=7,
-        episode_length=3000,
-    )
+    np.testing.assert_allclose(float(_sigma_after(ns, r, cfg, hp).sigma), expected, rtol=1e-6)
+    mean = _sigma_after(ns, r, dataclasses.replace(cfg, delta_reduce="mean"), hp)
     np.testing.assert_allclose(float(mean.sigma), 0.08 * np.exp(-0.1) + 0.92 * np.exp(-delta / 4), rtol=1e-6)
-    per_step = nz.update(
-        ns,
-        cfg=dataclasses.replace(cfg, t_unit="env_step"),
-        time_attenuating=True,
-        hp=hp,
-        rewards=r,
-        n_tr=30_000,
-        n_upd=7,
-        episode_length=3000,
-    )
+    per_step = _sigma_after(ns, r, dataclasses.replace(cfg, t_unit="env_step"), hp)
     np.testing.assert_allclose(float(per_step.sigma), 0.92 * np.exp(-delta), rtol=1e-5)
-    per_update = nz.update(
-        ns,
-        cfg=dataclasses.replace(cfg, t_unit="update"),
-        time_attenuating=True,
-        hp=hp,
-        rewards=r,
-        n_tr=30_000,
-        n_upd=7,
-        episode_length=3000,
-    )
+    per_update = _sigma_after(ns, r, dataclasses.replace(cfg, t_unit="update"), hp)
     np.testing.assert_allclose(
         float(per_update.sigma), 0.08 * np.exp(-0.07) + 0.92 * np.exp(-delta), rtol=1e-6
     )
 
 
 def test_sigma_kept_when_rewards_are_flat_and_running_range():
-    hp, cfg = Hyper(), NoiseConfig()
+    cfg = NoiseConfig()
     ns = nz.NoiseState(sigma=jnp.float32(0.3), r_min=jnp.float32(jnp.inf), r_max=jnp.float32(-jnp.inf))
-    flat = nz.update(
-        ns,
-        cfg=cfg,
-        time_attenuating=True,
-        hp=hp,
-        rewards=jnp.full(8, -2.0),
-        n_tr=1000,
-        n_upd=1,
-        episode_length=3000,
-    )
-    assert float(flat.sigma) == pytest.approx(0.3)
+    assert float(_sigma_after(ns, jnp.full(8, -2.0), cfg, n_tr=1000, n_upd=1).sigma) == pytest.approx(0.3)
     run_cfg = dataclasses.replace(cfg, r_range="running")
-    s1 = nz.update(
-        ns,
-        cfg=run_cfg,
-        time_attenuating=True,
-        hp=hp,
-        rewards=jnp.array([-4.0, 0.0]),
-        n_tr=0,
-        n_upd=1,
-        episode_length=3000,
-    )
-    s2 = nz.update(
-        s1,
-        cfg=run_cfg,
-        time_attenuating=True,
-        hp=hp,
-        rewards=jnp.array([-1.0, -1.0]),
-        n_tr=0,
-        n_upd=2,
-        episode_length=3000,
-    )
+    s1 = _sigma_after(ns, [-4.0, 0.0], run_cfg, n_tr=0, n_upd=1)
+    s2 = _sigma_after(s1, [-1.0, -1.0], run_cfg, n_tr=0, n_upd=2)
     assert float(s2.r_min) == -4.0 and float(s2.r_max) == 0.0
     # a flat batch is still normalised by the running range: δ = 2 * 0.75
     np.testing.assert_allclose(float(s2.sigma), 0.08 + 0.92 * np.exp(-1.5), rtol=1e-6)
@@ -177,18 +128,10 @@ def test_td3_keeps_sigma_constant_and_sigma_as_variance():
     hp = Hyper(sigma=0.1)
     ns = nz.init(hp, False)
     assert float(ns.sigma) == pytest.approx(0.1)
-    assert float(
-        nz.update(
-            ns,
-            cfg=NoiseConfig(),
-            time_attenuating=False,
-            hp=hp,
-            rewards=jnp.arange(4.0),
-            n_tr=10,
-            n_upd=1,
-            episode_length=10,
-        ).sigma
-    ) == pytest.approx(0.1)
+    kept = _sigma_after(
+        ns, jnp.arange(4.0), hp=hp, time_attenuating=False, n_tr=10, n_upd=1, episode_length=10
+    )
+    assert float(kept.sigma) == pytest.approx(0.1)
     assert float(nz.std(NoiseConfig(sigma_is_variance=True), jnp.float32(0.04))) == pytest.approx(0.2)
     assert TrainConfig(algo="td3").time_attenuating is False and TrainConfig().time_attenuating
 
@@ -236,7 +179,8 @@ def test_n_step_returns_follow_one_env_and_stop_at_episode_ends_and_the_newest_r
     done = jnp.zeros(10).at[4].set(1.0).at[7].set(1.0)  # env 0 ends at row 4 (truncated), env 1 at 7
     term = jnp.zeros(10).at[7].set(1.0)  # row 7: a crash
     buf = _two_env_buffer(done, term, rows=10)
-    batch, disc, r1 = jax.jit(lambda k: rb.sample_n_step(buf, k, 6, 3, 2, g))(jax.random.PRNGKey(0))
+    draw = jax.jit(lambda k: rb.sample_n_step(buf, k, 6, n=3, num_envs=2, gamma=g))
+    batch, disc, r1 = draw(jax.random.PRNGKey(0))
     # rows the sample drew
     drawn = np.asarray(batch.obs[:, 0]).astype(int)
     want = {0: (0 + g * 2 + g * g * 4, 4.5, 0.0, 3),  # ends at row 4 (truncated): bootstraps from 4.5
@@ -258,7 +202,8 @@ def test_n_step_returns_wrap_around_the_ring_and_start_at_the_oldest_row():
     done = jnp.zeros(20)
     buf = _two_env_buffer(done, jnp.zeros(20), rows=20, capacity=16)  # rows 16-19 overwrote 0-3
     assert int(buf.pos) == 4 and int(buf.size) == 16
-    batch, disc, _ = jax.jit(lambda k: rb.sample_n_step(buf, k, 64, 3, 2, 0.5))(jax.random.PRNGKey(1))
+    draw = jax.jit(lambda k: rb.sample_n_step(buf, k, 64, n=3, num_envs=2, gamma=0.5))
+    batch, disc, _ = draw(jax.random.PRNGKey(1))
     for i in range(64):
         first = float(batch.obs[i, 0])  # the step number written in that row
         m = round(float(np.log(float(disc[i])) / np.log(0.5)))
@@ -503,3 +448,12 @@ def test_the_model_based_update_never_moves_the_actor(model_trainer):
         out, _ = jax.jit(lambda ts, j=j: model_based.update(t.setup, ts, s.hp, jax.random.PRNGKey(5), j))(ts)
         assert not changed(out.actor, ts.actor) and changed(out.critic, ts.critic)
         assert changed(out.target_critic, ts.target_critic) == (j == 1)
+
+
+def test_the_model_based_update_needs_an_env_that_gradients_flow_through():
+    """The one check of the rule, where the trainer is made: any env, named in its field."""
+    s = tiny(model_horizon=2)
+    rigid = sp.env_spec(s)._replace(differentiable=False)
+    with pytest.raises(ValueError, match=r"model_horizon must be 0 for this env: .*, got 2"):
+        T.make_trainer(s.train, rigid)
+    assert T.make_trainer(dataclasses.replace(s.train, model_horizon=0), rigid).setup.env is rigid

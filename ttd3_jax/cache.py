@@ -10,8 +10,8 @@ import functools
 import hashlib
 import importlib.metadata
 import json
+import logging
 import os
-import sys
 import tempfile
 import warnings
 from collections.abc import Callable, Sequence
@@ -19,6 +19,7 @@ from collections.abc import Callable, Sequence
 import jax
 from jax import export as jax_export
 
+logger = logging.getLogger(__name__)
 COMPILE_CACHE_OFF = "none"
 
 
@@ -48,10 +49,8 @@ def use_compile_cache(path: str | None = None) -> str | None:
         os.makedirs(path, exist_ok=True)
     except OSError as e:
         if not chosen:  # the default place is not writable here: run without a cache
-            print(
-                f"warning: no XLA compilation cache ({path!r}: {e.strerror}); pass --compile-cache DIR",
-                file=sys.stderr,
-            )
+            note = f"warning: no XLA compilation cache ({path!r}: {e.strerror}); pass --compile-cache DIR"
+            logger.warning(note)
             jax.config.update("jax_enable_compilation_cache", False)
             return None
         raise ValueError(
@@ -253,7 +252,7 @@ class StoredProgram:
     (``jax.debug.print``) cannot be stored: it runs as plain ``jax.jit`` with a one-line note.
     ``donate_argnums`` as for ``jax.jit``."""
 
-    def __init__(self, fn: Callable, name: str, context: str, directory: str,
+    def __init__(self, fn: Callable, name: str, context: str, directory: str, *,
                  donate_argnums: Sequence[int] = (), context_files=()):  # fmt: skip
         self.fn, self.name, self.directory = fn, name, directory
         self.context = repr((context, file_digests(context_files)))
@@ -302,7 +301,7 @@ class StoredProgram:
             write_program(path, exported.serialize(), out_tree[0])
         except (NotImplementedError, ImportError, _NotStorable) as e:  # e.g. jax.debug.print's callback
             note = f"note: the {self.name} program cannot be stored ({e}); it runs as plain jit"
-            print(note, file=sys.stderr)
+            logger.warning(note)
             self._plain_jit = True
             return None
         return exported, out_tree[0]

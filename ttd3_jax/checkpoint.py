@@ -18,7 +18,6 @@ import json
 import logging
 import math
 import os
-import sys
 import threading
 import time
 import weakref
@@ -32,7 +31,7 @@ from flax import serialization
 # Orbax refuses zero-size arrays (MJX states carry some, e.g. ``act`` for models without
 # actuator state): they are stored as a 1-element placeholder and rebuilt on restore.
 
-
+logger = logging.getLogger(__name__)
 DIGESTS = "checkpoint_digests.json"  # in the run directory: {epoch: digest of the saved state}
 FILES = "checkpoint_files.json"  # in the run directory: {epoch: {file under checkpoints/<epoch>/: sha256}}
 
@@ -250,24 +249,24 @@ def _reason(e: Exception) -> str:
     return f"{type(e).__name__}: {text[:160]}{'...' if len(text) > 160 else ''}"
 
 
-def _stderr(message: str) -> None:
-    print(f"note: {message}", file=sys.stderr)
+def _note(message: str) -> None:
+    logger.warning(f"note: {message}")
 
 
 @contextlib.contextmanager
 def _orbax_quiet():
     """orbax logs (absl, ERROR) each damaged file it meets, e.g. a step's metadata while
     listing the steps; the fallback says what did not load, in one line."""
-    logger = logging.getLogger("absl")
-    level = logger.level
-    logger.setLevel(logging.CRITICAL)
+    absl = logging.getLogger("absl")
+    level = absl.level
+    absl.setLevel(logging.CRITICAL)
     try:
         yield
     finally:
-        logger.setLevel(level)
+        absl.setLevel(level)
 
 
-def restore_newest(run_dir: str, like, epoch: int | None = None, note=_stderr):
+def restore_newest(run_dir: str, like, epoch: int | None = None, note=_note):
     """The newest checkpoint of ``run_dir`` that loads (or checkpoint ``epoch``):
     ``(epoch, state, skipped)``, where ``skipped`` lists ``(epoch, reason)`` of newer
     checkpoints that did not load (corrupt, half deleted, or files that differ from their
@@ -317,6 +316,8 @@ def _restore_newest(run_dir: str, like, epoch: int | None, note):
 # state checkpoints (which keep only the last two epochs): per seed, the actor parameters
 # and observation statistics as flax msgpack, plus ``best/best.json`` with its epoch and
 # validation error.  Writes are atomic (temporary file, then rename).
+# Hand-written, not orbax's ``best_fn``: that ranks whole steps by one scalar, while each vmapped
+# seed keeps its own best epoch, skips non-finite errors and keeps the earlier epoch on a tie.
 
 
 def _atomic_write(path: str, data: bytes | str) -> None:

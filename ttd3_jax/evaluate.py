@@ -24,6 +24,7 @@ import tyro
 
 from ttd3_jax import report, runs
 from ttd3_jax.cli_checks import bool_flags, refuse_bool_values, writable_dir, writable_file
+from ttd3_jax.console import show_messages
 from ttd3_jax.control import generalization as gen
 from ttd3_jax.control.evaluator import (
     CONTROLLERS,
@@ -223,7 +224,7 @@ def write_outputs(args, out: dict, traces: dict, title: str) -> None:
         print(f"wrote {json_path}")
     plots = args.plots or (os.path.dirname(os.path.abspath(json_path)) if json_path else None)
     if plots:
-        paths = report.plot_traces(traces, plots, title, args.los_seed)
+        paths = report.plot_traces(traces, plots, title=title, los_seed=args.los_seed)
         csvs = report.write_traces(traces, plots)
         names = ", ".join(os.path.basename(p) for p in csvs)
         print(f"wrote {len(paths)} plots and {len(csvs)} trace CSVs ({names}) to {plots}")
@@ -279,6 +280,7 @@ def notes(args, cfg: EnvConfig, tracks: dict | None, header: dict) -> None:
 
 def main(argv=None) -> int:
     logging.getLogger("absl").setLevel(logging.ERROR)  # orbax's warnings are ours to phrase
+    show_messages()  # the package's notes (a damaged file, the compile cache), as plain lines
     ap = build_parser()
     argv, task_args = split_task_args(list(sys.argv[1:] if argv is None else argv))
     args = ap.parse_args(argv)
@@ -303,8 +305,9 @@ def main(argv=None) -> int:
     for label, theta in labels.items():
         if tracks is None:
             which = tr.TEST_TRACKS if args.track == "all" else (args.track,)
-            results[label], traces[label] = evaluate_controller(ev, theta, args.los_seed, which, args.timing,
-                                                                args.repeats)  # fmt: skip
+            results[label], traces[label] = evaluate_controller(
+                ev, theta, los_seed=args.los_seed, tracks=which, timing=args.timing, repeats=args.repeats
+            )
         else:
             results[label], traces[label] = evaluate_tracks(ev, theta, tracks, args.timing, args.repeats)
     print(report.format_results(results, args.timing))

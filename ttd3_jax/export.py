@@ -16,6 +16,7 @@ import sys
 from ttd3_jax import policy_export as pe
 from ttd3_jax import runs
 from ttd3_jax.cli_checks import writable_dir
+from ttd3_jax.console import show_messages
 from ttd3_jax.sim.env import TrackingEnv
 
 
@@ -55,6 +56,7 @@ def check_args(ap: argparse.ArgumentParser, args) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     logging.getLogger("absl").setLevel(logging.ERROR)
+    show_messages()  # the package's notes (a damaged file), as plain lines
     ap = build_parser()
     args = ap.parse_args(argv)
     check_args(ap, args)

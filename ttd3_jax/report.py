@@ -23,7 +23,7 @@ def track_names(traces: dict[str, dict]) -> list[str]:
     return list(dict.fromkeys(t for v in traces.values() for t in v))
 
 
-def plot_traces(traces: dict[str, dict[str, Trace]], out_dir: str, title: str = "", los_seed: int = 0,
+def plot_traces(traces: dict[str, dict[str, Trace]], out_dir: str, *, title: str = "", los_seed: int = 0,
                 prefix: str = "", e_show: float = 2.0, action_note: str = "") -> list[str]:  # fmt: skip
     """Per track: ``{prefix}{track}_3d.png`` (reference and flown paths),
     ``{prefix}{track}_error.png`` (‖e‖ vs time) and ``{prefix}{track}_actions.png`` (the four

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import logging
 import os
 import shutil
 import socket
@@ -22,6 +23,7 @@ from contextlib import contextmanager
 LOCK = "lock.json"
 STATE = "state.json"
 STATES = ("running", "stopped", "failed", "finished")
+logger = logging.getLogger(__name__)
 
 
 class RunLocked(ValueError):
@@ -129,12 +131,13 @@ def state(run_dir: str) -> dict:
 
 
 @contextmanager
-def writing(run_dir: str, log=print):
+def writing(run_dir: str, log=None):
     """Hold ``run_dir``'s lock while training it: the state reads ``running``, and ``failed``
-    with the reason if the body raises (Ctrl-C included); the lock is released at the end."""
+    with the reason if the body raises (Ctrl-C included); the lock is released at the end.
+    ``log`` says that a stale lock was taken over (default: this module's logger, INFO)."""
     note = acquire(run_dir)
     if note:
-        log(f"note: {note}")
+        (logger.info if log is None else log)(f"note: {note}")
     try:
         mark(run_dir, "running", pid=os.getpid())
         yield

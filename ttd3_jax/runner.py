@@ -1,18 +1,21 @@
 """The Python loop around the compiled epochs: progress, evaluation, logs, checkpoints,
 resume.  Each epoch is one compiled call; a checkpoint of the whole train state follows it,
-so a kill loses at most the epoch in flight and a resume continues bit for bit.
+so a kill loses at most the epoch in flight and a resume continues bit for bit.  What the
+loop does is logged (``logging``, INFO; :mod:`ttd3_jax.console` shows it); the per-epoch
+progress line is printed on stdout.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
 import os
 import sys
 import threading
 import time
-from typing import NamedTuple
+from collections.abc import Callable
 
 import jax
 import numpy as np
@@ -25,6 +28,8 @@ from ttd3_jax.control.paper import PAPER_TTD3, beats_paper
 from ttd3_jax.sharding import runner_fns
 from ttd3_jax.td3.config import Hyper
 from ttd3_jax.td3.trainer import seed_keys
+
+logger = logging.getLogger(__name__)
 
 
 class TrainingDiverged(RuntimeError):
@@ -125,7 +130,7 @@ def check_finite(m: dict, ts, epoch: int, run_dir: str, mngr) -> None:
     )
 
 
-def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = None,
+def run(spec: sp.RunSpec | None = None, out: str = "runs", *, resume: str | None = None,
         verbose: bool = True, stop_after: int | None = None, checkpoint_every: int = 1) -> dict:  # fmt: skip
     """Train ``spec`` into a new run directory under ``out``, or continue the run in
     ``resume`` from its newest checkpoint that loads (a run without one starts over; a
@@ -135,10 +140,10 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = 
     since; large replay buffers make each save cost seconds).  The memory the run needs is
     checked before anything is written or compiled, and the run directory is locked while
     it trains (:mod:`ttd3_jax.run_state`).  Returns a summary dict (run_dir, final eval,
-    timings)."""
+    timings).  ``verbose``: log what the run does and print a progress line per epoch."""
     if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int) or checkpoint_every < 1:
         raise ValueError(f"checkpoint_every must be an integer >= 1, got {checkpoint_every!r}")
-    log = print if verbose else (lambda *a, **k: None)
+    log = logger.info if verbose else _quiet
     if resume is not None:
         spec = runs.load_spec(resume)
         done = finished_note(resume, spec)
@@ -160,16 +165,24 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", resume: str | None = 
     run_dir = resume if resume is not None else runs.new_run_dir(out, spec)
     with run_state.writing(run_dir, log):
         r = _Run(spec=spec, trainer=trainer, run_dir=run_dir, resuming=resume is not None, log=log,
-                 stages=stages)  # fmt: skip
+                 verbose=verbose, stages=stages)  # fmt: skip
         return _train(r, t, stop_after, checkpoint_every)
 
 
-class _Run(NamedTuple):
+def _quiet(message: str) -> None:
+    """``log`` of a run that is not verbose."""
+
+
+@dataclasses.dataclass(frozen=True)
+class _Run:
+    """What one launch of :func:`run` works with."""
+
     spec: sp.RunSpec
     trainer: object
     run_dir: str
     resuming: bool
-    log: object
+    log: Callable[[str], None]  # the module logger's ``info``, or ``_quiet``
+    verbose: bool  # the progress line and the in-epoch bar
     stages: Stages
 
 
@@ -188,7 +201,7 @@ def finished_note(run_dir: str, spec: sp.RunSpec) -> str | None:
 def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> dict:
     """The run under its lock: start (or restore), compile, the epochs, the results."""
     spec, run_dir, log, stages, c = r.spec, r.run_dir, r.log, r.stages, r.spec.train
-    live = LiveBar(c.epochs) if log is print and sys.stdout.isatty() else None
+    live = LiveBar(c.epochs) if r.verbose and sys.stdout.isatty() else None
     keys, hp = seed_keys(spec.seed, spec.num_seeds), spec.hp
     # plain jit on one device; seeds (and envs) split over all visible devices otherwise
     init_fn, epoch_fn, eval_fn, place = _stored(spec, runner_fns(r.trainer, keys, hp))
@@ -196,14 +209,14 @@ def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> 
     mngr = None
     try:  # until the checkpoint being written in the background is on disk (also on errors, Ctrl-C)
         if r.resuming and (_has_checkpoint(run_dir) or os.path.exists(os.path.join(run_dir, "metrics.csv"))):
-            ts, start, csv_log = _resume(run_dir, init_fn, keys, hp, place, log)
+            ts, start, csv_log = _resume(run_dir, init_fn=init_fn, keys=keys, hp=hp, place=place, log=log)
             mngr = ckpt.manager(run_dir, asynchronous=True)  # after _resume deleted what does not load
             stages.restore_s, t = _since(t)
         else:
             if r.resuming:
                 log(f"{run_dir} has no checkpoint (it stopped before its first): starting it over")
             mngr = ckpt.manager(run_dir, asynchronous=True)
-            ts, start, csv_log, t = _fresh(r, mngr, init_fn, keys, hp, t)
+            ts, start, csv_log, t = _fresh(r, mngr=mngr, init_fn=init_fn, keys=keys, hp=hp, t=t)
         epoch_c, stages.epoch_lower_s, stages.epoch_compile_s, t = _program(epoch_fn, (ts, hp), t)
         eval_c, stages.eval_lower_s, stages.eval_compile_s, t = _program(
             eval_fn, (jax.eval_shape(lambda t: t, ts),), t
@@ -217,7 +230,7 @@ def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> 
             f"{c.updates_per_step} updates per epoch")  # fmt: skip
         last = c.epochs if stop_after is None else min(c.epochs, start + stop_after)
         loop = EpochLoop(spec=spec, run_dir=run_dir, mngr=mngr, csv_log=csv_log, epoch_c=epoch_c,
-                         eval_c=eval_c, live=live, log=log, checkpoint_every=checkpoint_every)  # fmt: skip
+                         eval_c=eval_c, live=live, verbose=r.verbose, every=checkpoint_every)  # fmt: skip
         ts, ev, run_s, stages.epochs = _epochs(loop, ts, start, last)
     finally:
         if mngr is not None:
@@ -227,7 +240,7 @@ def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> 
         log(f"stopped after epoch {last}/{c.epochs}; continue with --resume {run_dir}")
         return {"run_dir": run_dir, "stopped_at": last}
     ev = ev if ev is not None else jax.device_get(eval_c(ts))
-    summary = _finish(run_dir, spec, ev, ep_s + ev_s, run_s, stages)
+    summary = _finish(run_dir, spec, ev, compile_s=ep_s + ev_s, run_s=run_s, stages=stages)
     run_state.mark(run_dir, "finished", epoch=last)
     extra = ", best/ (the policy selected on the validation tracks)" if spec.is_quadrotor else ""
     log(f"results in {run_dir}: metrics.csv, eval.json, learning_curve.png, checkpoints/{extra}")
@@ -242,7 +255,7 @@ def _has_checkpoint(run_dir: str) -> bool:
         m.close()
 
 
-def _fresh(r: _Run, mngr, init_fn, keys, hp, t: float):
+def _fresh(r: _Run, *, mngr, init_fn, keys, hp, t: float):
     """Initialise, collect the warm-up and write checkpoint 0: ``(ts, 0, csv_log, t)``."""
     stages, c = r.stages, r.spec.train
     init_c, stages.init_lower_s, stages.init_compile_s, t = _program(init_fn, (keys, hp), t)
@@ -290,7 +303,7 @@ def _since(t: float) -> tuple[float, float]:
     return now - t, now
 
 
-def _resume(run_dir: str, init_fn, keys, hp, place, log):
+def _resume(run_dir: str, *, init_fn, keys, hp, place, log):
     """The newest checkpoint that loads (newer ones that do not are deleted, and said so),
     and the metrics log cut back to it.  Refuses a run that logged epochs but holds no
     checkpoint (one that stopped before its first starts over instead)."""
@@ -321,14 +334,14 @@ class EpochLoop:
     epoch_c: object  # compiled epoch program
     eval_c: object  # compiled evaluation program
     live: LiveBar | None  # the in-epoch bar on a terminal
-    log: object  # print, or a no-op when not verbose
-    checkpoint_every: int
+    verbose: bool  # print the progress line
+    every: int  # epochs between checkpoints
 
 
 def _epochs(loop: EpochLoop, ts, start: int, last: int):
     """Epochs ``start + 1 … last``: train, check, evaluate, log, select, checkpoint."""
     spec, run_dir, mngr, csv_log = loop.spec, loop.run_dir, loop.mngr, loop.csv_log
-    epoch_c, eval_c, live, log, every = loop.epoch_c, loop.eval_c, loop.live, loop.log, loop.checkpoint_every
+    epoch_c, eval_c, live, every = loop.epoch_c, loop.eval_c, loop.live, loop.every
     tb = report.tensorboard(run_dir)
     run_s, ev, timings = 0.0, None, []
     for epoch in range(start + 1, last + 1):
@@ -365,13 +378,14 @@ def _epochs(loop: EpochLoop, ts, start: int, last: int):
             ckpt.save(mngr, epoch, ts, wait=False)  # written during the next epoch
         host_s = time.perf_counter() - te - dt  # logs, selection, checkpoint
         timings.append(dict(epoch=epoch, train_s=t_train, eval_s=dt - t_train, host_s=host_s))
-        log(progress_line(epoch, spec.train.epochs, m, ev, sps), flush=True)
+        if loop.verbose:
+            print(progress_line(epoch, spec.train.epochs, m, ev, sps), flush=True)
     if tb is not None:
         tb.close()
     return ts, ev, run_s, timings
 
 
-def _finish(run_dir: str, spec: sp.RunSpec, ev, compile_s: float, run_s: float, stages: Stages) -> dict:
+def _finish(run_dir: str, spec: sp.RunSpec, ev, *, compile_s: float, run_s: float, stages: Stages) -> dict:
     seed_evals = [{k: float(np.asarray(v)[i]) for k, v in ev.items()} for i in range(spec.num_seeds)]
     seeds = list(range(spec.seed, spec.seed + spec.num_seeds))
     summary = dict(run_dir=run_dir, env=spec.env, algo=spec.algo, seeds=seeds, final_eval=seed_evals,

@@ -10,8 +10,8 @@ import csv
 import datetime
 import itertools
 import json
+import logging
 import os
-import sys
 from typing import Any, NamedTuple
 
 import jax
@@ -27,6 +27,8 @@ from ttd3_jax.sharding import per_seed
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.td3 import networks
 from ttd3_jax.td3.trainer import Trainer, act, initial_actor, seed_keys
+
+logger = logging.getLogger(__name__)
 
 CONFIG = "config.json"
 
@@ -188,7 +190,7 @@ def selected_policy(run_dir: str, seed: int, index_: int, like, epoch: int):
         why = f"its epoch {epoch} checkpoint is no longer kept, so it cannot be rebuilt"
         raise ValueError(f"{damaged}; {why}: use the newest checkpoint (leave out --best)") from None
     stats = index(st.obs_stats, index_) if like["obs_stats"] is not None else None
-    print(f"note: {damaged}; rebuilt from checkpoint {epoch}, the epoch it was selected at", file=sys.stderr)
+    logger.warning(f"note: {damaged}; rebuilt from checkpoint {epoch}, the epoch it was selected at")
     return {"actor": index(st.actor, index_), "obs_stats": stats}
 
 

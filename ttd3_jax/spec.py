@@ -81,12 +81,7 @@ class RunSpec:
             ("brax", BraxSettings),
         ):
             checks.instance(name, getattr(self, name), kind)
-        validate_hyper(self.hp)
-        if self.train.model_horizon > 0 and self.env != QUADROTOR:
-            raise ValueError(
-                f"model_horizon > 0 back-propagates through the quadrotor simulator; env {self.env!r} "
-                "needs model_horizon 0"
-            )
+        validate_hyper(self.hp)  # (model_horizon's env is checked where the trainer is made)
         if self.task.track != "train" or self.task.los_seed != 0:
             raise ValueError(
                 "task.track must be 'train' and task.los_seed 0 (training draws the training mixture; the "

@@ -28,6 +28,7 @@ from ttd3_jax import run_state, runs
 from ttd3_jax import spec as sp
 from ttd3_jax.cache import use_compile_cache
 from ttd3_jax.cli_checks import bool_flags, refuse_bool_values
+from ttd3_jax.console import show_messages
 from ttd3_jax.runner import TrainingDiverged, run
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim.vehicles import VEHICLE_NAMES, with_vehicle
@@ -133,6 +134,7 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
 def main(argv: list[str] | None = None) -> int:
     """The CLI (see the module docstring); returns the exit status."""
     _quiet_background_failures()  # orbax's warnings and errors are ours to phrase
+    show_messages()  # the runner's log, as plain lines
     try:
         known, spec = parse(list(sys.argv[1:] if argv is None else argv))
         if known.remove is not None:

@@ -186,7 +186,7 @@ class Evaluator:
                     compile_loop_step_s=cs["loop_step"], compile_act_s=cs["act"])  # fmt: skip
 
 
-def evaluate_controller(ev: Evaluator, theta=None, los_seed: int = 0, tracks=tr.TEST_TRACKS,
+def evaluate_controller(ev: Evaluator, theta=None, *, los_seed: int = 0, tracks=tr.TEST_TRACKS,
                         timing: bool = True, repeats: int = 3) -> tuple[dict, dict]:  # fmt: skip
     """Metrics (spec §2.5), optional run times and traces on Spiral-RT and LOS-RT
     ``los_seed``: ``({track: {metric: float}}, {track: Trace})``."""

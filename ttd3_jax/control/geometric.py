@@ -43,7 +43,7 @@ def _vee(m: jax.Array) -> jax.Array:
     return jnp.stack([m[2, 1], m[0, 2], m[1, 0]])
 
 
-def geometric_control(params: QuadParams, gains: GeometricGains, x: QuadState, p_ref: jax.Array,
+def geometric_control(params: QuadParams, gains: GeometricGains, x: QuadState, *, p_ref: jax.Array,
                       v_ref: jax.Array, a_ref: jax.Array) -> jax.Array:  # fmt: skip
     """Physical control ``[thrust, ω_x, ω_y, ω_z]`` (thrust in the model's unit), clipped."""
     f = x.p.dtype
@@ -75,7 +75,7 @@ def geometric_controller(cfg: EnvConfig, gains: GeometricGains | None = None) ->
     def act(carry, state):
         ps = state.pipeline_state
         p_ref, v_ref, a_ref = tr.evaluate(ps.track, ps.k, cfg.dt)
-        u = geometric_control(cfg.quad, gains, ps.quad, p_ref, v_ref, a_ref)
+        u = geometric_control(cfg.quad, gains, ps.quad, p_ref=p_ref, v_ref=v_ref, a_ref=a_ref)
         return control_to_action(cfg, u), carry
 
     return Controller(init=lambda s: (), act=act)

@@ -53,7 +53,7 @@ def robustness_conditions(cfg: EnvConfig) -> dict[str, EnvConfig]:
     }
 
 
-def evaluate_robustness(build: Build, theta, cfg: EnvConfig, los_seeds=range(1, 21),
+def evaluate_robustness(build: Build, theta, cfg: EnvConfig, los_seeds=range(1, 21), *,
                         conditions=ROBUSTNESS_CONDITIONS, sequential: bool = False,
                         seed: int = 0) -> dict:  # fmt: skip
     """The controller ``build(theta)`` (built by the caller for the *nominal* ``cfg``) under

@@ -219,7 +219,7 @@ def _axpy(a, dx: QuadState, x: QuadState) -> QuadState:
 
 
 def rk4_step(params: QuadParams, x: QuadState, u: jax.Array, dt: float,
-             accel_ext: jax.Array | None = None, substeps: int = 1,
+             accel_ext: jax.Array | None = None, *, substeps: int = 1,
              renormalize: bool = True) -> QuadState:  # fmt: skip
     """Advance ``x`` by ``dt`` seconds under zero-order-hold ``u`` (spec D7): ``substeps`` RK4
     steps, then ``q`` back to unit norm if ``renormalize`` (``instant`` model: ``w = ω_cmd``)."""

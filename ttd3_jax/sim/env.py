@@ -258,9 +258,8 @@ class TrackingEnv(Env):
         quad, k, wind, key, reward, err_sum, crashed = carry
         if c.wind_sigma > 0:
             wind, key = ou_wind_step(c, wind, key)
-        quad = rk4_step(
-            c.quad, quad, u, c.dt, wind if c.wind_sigma > 0 else None, c.rk4_substeps, c.renormalize
-        )
+        wind_accel = wind if c.wind_sigma > 0 else None
+        quad = rk4_step(c.quad, quad, u, c.dt, wind_accel, substeps=c.rk4_substeps, renormalize=c.renormalize)
         k = k + 1
         step_r = -c.rho2 * effort
         if p_ref is None:

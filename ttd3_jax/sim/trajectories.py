@@ -237,7 +237,7 @@ def spiral_rt(cfg: TrackConfig = TrackConfig(), num_segments: int = 1) -> Track:
     )
 
 
-def _los_tables(thetas, speeds, dt, seg_steps, heading_cumulative, p_is_speed, climb_rate, init_point,
+def _los_tables(thetas, speeds, dt, seg_steps, *, heading_cumulative, p_is_speed, climb_rate, init_point,
                 literal_init):  # fmt: skip
     """Segment start positions/velocities for LOS tracks (zero acceleration): headings θ
     (absolute or cumulative), speeds (m/s, or m per step unless ``p_is_speed``), climb m/s."""
@@ -281,8 +281,9 @@ def los_rt(key: jax.Array, cfg: TrackConfig = TrackConfig(), num_segments: int |
     thetas = _prefix_uniform(k_theta, n, f, -cfg.los_theta_max, cfg.los_theta_max)
     speeds = _prefix_uniform(k_speed, n, f, cfg.los_speed[0], cfg.los_speed[1])
     cumulative = cfg.los_heading == "cumulative"
-    starts, vel = _los_tables(thetas, speeds, dt, jnp.asarray(S), cumulative, cfg.los_p_is_speed,
-                              cfg.los_climb_rate, cfg.los_init_point, cfg.los_literal_init)  # fmt: skip
+    starts, vel = _los_tables(thetas, speeds, dt, jnp.asarray(S), heading_cumulative=cumulative,
+                              p_is_speed=cfg.los_p_is_speed, climb_rate=cfg.los_climb_rate,
+                              init_point=cfg.los_init_point, literal_init=cfg.los_literal_init)  # fmt: skip
     return _make(
         PIECEWISE, n_seg=n, seg_steps=S, first_step=int(cfg.los_literal_init), seg_p=starts, seg_v=vel
     )
@@ -349,9 +350,9 @@ def _train_los(u: jax.Array, n_seg: int, dt: float, cfg: TrackConfig) -> Track:
     climb = _uniform(u[4], -_LOS_CLIMB, _LOS_CLIMB)
     thetas = _uniform(u[6 : 6 + n_seg], -1.0, 1.0) * theta_max
     speeds = _uniform(u[6 + n_seg : 6 + 2 * n_seg], *_LOS_SPEED)
-    starts, vel = _los_tables(
-        thetas, speeds, dt, seg_steps, cumulative, True, climb, cfg.los_init_point, literal
-    )
+    starts, vel = _los_tables(thetas, speeds, dt, seg_steps, heading_cumulative=cumulative, p_is_speed=True,
+                              climb_rate=climb, init_point=cfg.los_init_point,
+                              literal_init=literal)  # fmt: skip
     first = literal.astype(jnp.int32)
     return _make(PIECEWISE, n_seg=n_seg, seg_steps=seg_steps, first_step=first, seg_p=starts, seg_v=vel)
 

@@ -3,6 +3,7 @@
 The capacity is a multiple of the number of parallel envs, so every insert is one
 ``dynamic_update_slice`` of ``num_envs`` rows at ``pos``, and sampling is one ``randint``
 gather: nothing is O(capacity) per step.  Row ``r`` holds env ``r % num_envs``.
+Hand-written on purpose: a pytree of the train state (vmapped, checkpointed and resumed with it).
 """
 
 from __future__ import annotations
@@ -66,7 +67,7 @@ def sample(buf: ReplayBuffer, key: jax.Array, batch_size: int) -> Transition:
     return jax.tree.map(lambda d: d[idx], buf.data)
 
 
-def sample_n_step(buf: ReplayBuffer, key: jax.Array, batch_size: int, n: int, num_envs: int, gamma):
+def sample_n_step(buf: ReplayBuffer, key: jax.Array, batch_size: int, *, n: int, num_envs: int, gamma):
     """A uniform minibatch whose rows carry n-step returns (``TrainConfig.n_step``).
 
     Row ``r + num_envs`` is env ``r % num_envs``'s next step, so from each sampled row the

@@ -86,7 +86,7 @@ def _where(mask, a, b):
     return jax.tree.map(lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
 
 
-def env_step(s: Setup, env_state, ep_return, hp: Hyper, actions: jax.Array, key: jax.Array):
+def env_step(s: Setup, env_state, ep_return, *, hp: Hyper, actions: jax.Array, key: jax.Array):
     """Step all envs with ``actions`` and auto-reset finished ones (fresh track and start).
 
     Returns the new env state, the :class:`~ttd3_jax.td3.buffer.Transition` (true next
@@ -115,7 +115,8 @@ def store(s: Setup, ts: TrainState, tr: rb.Transition) -> TrainState:
 def collect(s: Setup, ts: TrainState, hp: Hyper, actions: jax.Array, key: jax.Array):
     """Step all envs with ``actions``, store the transitions, auto-reset finished envs;
     returns the state and the :class:`Finished` episodes."""
-    env_state, tr, ep_return, finished = env_step(s, ts.env_state, ts.ep_return, hp, actions, key)
+    env_state, tr, ep_return, finished = env_step(s, ts.env_state, ts.ep_return, hp=hp, actions=actions,
+                                                  key=key)  # fmt: skip
     return store(s, ts.replace(env_state=env_state, ep_return=ep_return), tr), finished
 
 
@@ -146,8 +147,8 @@ def critic_update(s: Setup, ts: TrainState, hp: Hyper, key: jax.Array):
     c = s.config
     k_batch, k_target = jax.random.split(key)
     if c.n_step > 1:
-        batch, discount, rewards = rb.sample_n_step(ts.buffer, k_batch, c.batch_size, c.n_step, c.num_envs,
-                                                    hp.gamma)  # fmt: skip
+        batch, discount, rewards = rb.sample_n_step(ts.buffer, k_batch, c.batch_size, n=c.n_step,
+                                                    num_envs=c.num_envs, gamma=hp.gamma)  # fmt: skip
     else:
         batch = rb.sample(ts.buffer, k_batch, c.batch_size)
         discount, rewards = None, batch.reward

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from ttd3_jax import checks
 from ttd3_jax.td3 import buffer as rb
 from ttd3_jax.td3 import dpg, model_based
 from ttd3_jax.td3 import networks as nn
@@ -140,11 +141,13 @@ class Trainer(NamedTuple):
 
 def make_trainer(c: TrainConfig, env: EnvSpec) -> Trainer:
     """The pure training functions for config ``c`` on ``env``; the actor update is chosen
-    here, once, and so is checked that the model-based one has a differentiable env."""
-    model = c.model_horizon > 0
-    if model and not env.differentiable:
-        raise ValueError("--model-horizon > 0 back-propagates through the simulator; this env is not")
-    step = model_based.vector_step if model else dpg.vector_step
+    here, once, and so is checked (the one place) that the model-based one has a
+    differentiable env."""
+    horizon = c.model_horizon
+    if horizon > 0 and not env.differentiable:
+        why = "0 for this env: gradients do not flow through its step (> 0 back-propagates through it)"
+        checks.fail("model_horizon", why, horizon)
+    step = model_based.vector_step if horizon > 0 else dpg.vector_step
     s = make_setup(c, env)
     return Trainer(
         setup=s,
