@@ -1,6 +1,6 @@
 """A wider training-track distribution (issue 37): the paper's three families plus six more.
 
-Every family maps a slice of one block of U(0, 1) numbers onto a PIECEWISE or SPIRAL
+Every family maps the first numbers of one block of U(0, 1) draws onto a PIECEWISE or SPIRAL
 :class:`~ttd3_jax.sim.trajectories.Track` with the same table size, so that
 :func:`sample_wide_track` evaluates them all and picks one (branch-free under ``vmap``,
 like :func:`~ttd3_jax.sim.trajectories.sample_train_track`).  Every track starts at the
@@ -43,6 +43,7 @@ trained on; ``tests/test_track_families.py`` checks the distances numerically.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -144,12 +145,33 @@ def _step(u, n: int, dt: float) -> tr.Track:
     return tr.table(pos, zero, zero, hold)
 
 
-def _curve_table(path, n: int, seg_steps: int, dt: float, dtype) -> tr.Track:
-    """``path`` (t (m,) s -> (m, 3) m) as n quadratic segments of ``seg_steps`` steps, each
-    through the curve at its start, middle and end (continuous in position)."""
+class Curve(NamedTuple):
+    """A smooth track: ``p(t) = a1 sin φ + a2 (1 − cos φ) + a3 sin 2φ + R(t, drift_s)·drift`` with
+    ``φ = omega·R(t, ramp_s)`` (R: :func:`_ramp`).  Circles, figure-8s and vertical manoeuvres
+    are all of this form, so one tabulation (one sin and cos per knot) serves all three."""
+
+    omega: jax.Array  # rad/s
+    ramp_s: jax.Array  # s, spin-up of φ (0: at speed from the start)
+    a1: jax.Array  # (3,) m
+    a2: jax.Array  # (3,) m
+    a3: jax.Array  # (3,) m
+    drift: jax.Array  # (3,) m/s, velocity reached after drift_s
+    drift_s: jax.Array  # s
+
+
+def curve_position(c: Curve, t) -> jax.Array:
+    """Positions (m, 3) m of curve ``c`` at times ``t`` (m,) s."""
+    phi = c.omega * _ramp(t, c.ramp_s)
+    s, co = jnp.sin(phi)[:, None], jnp.cos(phi)[:, None]
+    return s * c.a1 + (1.0 - co) * c.a2 + (2.0 * s * co) * c.a3 + _ramp(t, c.drift_s)[:, None] * c.drift
+
+
+def _curve_table(c: Curve, n: int, seg_steps: int, dt: float, dtype) -> tr.Track:
+    """Curve ``c`` as n quadratic segments of ``seg_steps`` steps, each through the curve at
+    its start, middle and end (continuous in position)."""
     h = seg_steps * dt
-    t0 = jnp.arange(n, dtype=dtype) * h
-    p, m, e = path(t0), path(t0 + 0.5 * h), path(t0 + h)
+    knots = curve_position(c, jnp.arange(2 * n + 1, dtype=dtype) * (0.5 * h))  # starts and middles
+    p, m, e = knots[:-1:2], knots[1::2], knots[2::2]
     acc = 4.0 * (e - 2.0 * m + p) / (h * h)
     vel = (4.0 * m - 3.0 * p - e) / h
     return tr.table(p, vel, acc, seg_steps)
@@ -179,54 +201,41 @@ def _curve_common(u):
     return speed, e1, e2, ramp_acc
 
 
-def circle_path(u):
-    """The circle a block ``u`` (:data:`_CURVE_UNIFORMS`) draws: ``t (m,) s -> (m, 3) m``."""
+def circle_curve(u) -> Curve:
+    """The circle a block ``u`` (:data:`_CURVE_UNIFORMS`) draws."""
     r = _u(u[0], *CIRCLE_RADIUS)
     speed, e1, e2, ramp_acc = _curve_common(u)
     speed = jnp.minimum(speed, jnp.sqrt(CURVE_ACC * r))
-    omega, ramp_s = speed / r, 1.5 * speed / ramp_acc
-
-    def path(t):
-        th = (omega * _ramp(t, ramp_s))[:, None]
-        return r * (jnp.sin(th) * e1 + (1.0 - jnp.cos(th)) * e2)
-
-    return path
+    zero = jnp.zeros_like(e1)
+    return Curve(speed / r, 1.5 * speed / ramp_acc, r * e1, r * e2, zero, zero, jnp.zeros_like(r))
 
 
-def figure8_path(u):
-    """The figure-8 a block ``u`` (:data:`_CURVE_UNIFORMS`) draws: ``t (m,) s -> (m, 3) m``."""
+def figure8_curve(u) -> Curve:
+    """The figure-8 ``a sin φ e1 + b sin 2φ e2`` a block ``u`` (:data:`_CURVE_UNIFORMS`) draws."""
     a = _u(u[0], *FIGURE8_SIZE)
     b = a * _u(u[1], *FIGURE8_ASPECT)
     speed, e1, e2, ramp_acc = _curve_common(u)
-    # |p'(θ)| <= sqrt(a² + 4b²) (at θ = 0) and |p''(θ)| <= sqrt(a² + 16b²)
+    # |p'(φ)| <= sqrt(a² + 4b²) (at φ = 0) and |p''(φ)| <= sqrt(a² + 16b²)
     d1, d2 = jnp.sqrt(a * a + 4 * b * b), jnp.sqrt(a * a + 16 * b * b)
     omega = jnp.minimum(speed / d1, jnp.sqrt(CURVE_ACC / d2))
-    ramp_s = 1.5 * omega * d1 / ramp_acc
-
-    def path(t):
-        th = (omega * _ramp(t, ramp_s))[:, None]
-        return a * jnp.sin(th) * e1 + b * jnp.sin(2.0 * th) * e2
-
-    return path
+    zero = jnp.zeros_like(e1)
+    return Curve(omega, 1.5 * omega * d1 / ramp_acc, a * e1, zero, b * e2, zero, jnp.zeros_like(a))
 
 
-def vertical_path(u):
+def vertical_curve(u) -> Curve:
     """The vertical manoeuvre a block ``u`` (:data:`_VERTICAL_UNIFORMS`) draws: a climb or
-    descent with drift, a bob, or both (u[0] picks): ``t (m,) s -> (m, 3) m``."""
+    descent with drift, a bob ``±A(1 − cos ωt)``, or both (u[0] picks)."""
     mode = jnp.floor(3.0 * u[0])  # 0: climb, 1: bob, 2: both
     climb = _u(u[1], -VERT_CLIMB, VERT_CLIMB) * (mode != 1)
     drift, psi = _u(u[2], 0.0, VERT_DRIFT), _u(u[3], 0.0, 2 * math.pi)
     cruise = jnp.stack([drift * jnp.cos(psi), drift * jnp.sin(psi), climb])
-    ramp_s = jnp.maximum(_u(u[4], *VERT_RAMP_S), 1.5 * jnp.linalg.norm(cruise) / VERT_RAMP_ACC)
+    drift_s = jnp.maximum(_u(u[4], *VERT_RAMP_S), 1.5 * jnp.linalg.norm(cruise) / VERT_RAMP_ACC)
     amp = _u(u[5], *VERT_BOB_AMPLITUDE) * (mode != 0)
     safe = jnp.maximum(amp, 1e-6)
     omega = _u(u[6], 0.5, 1.0) * jnp.minimum(VERT_BOB_SPEED / safe, jnp.sqrt(VERT_BOB_ACC / safe))
     bob = jnp.where(u[7] < 0.5, 1.0, -1.0) * amp * jnp.asarray([0.0, 0.0, 1.0], u.dtype)
-
-    def path(t):
-        return _ramp(t, ramp_s)[:, None] * cruise + (1.0 - jnp.cos(omega * t))[:, None] * bob
-
-    return path
+    zero = jnp.zeros_like(bob)
+    return Curve(omega, jnp.zeros_like(omega), zero, bob, zero, cruise, drift_s)
 
 
 def _agile(u, n: int, dt: float, acc_max, speed_max) -> tr.Track:
@@ -263,33 +272,40 @@ def _los_fast(u, n: int, dt: float) -> tr.Track:
     return tr.table(pos, vel, jnp.zeros_like(vel), leg)
 
 
-def _sizes(n: int) -> tuple[int, ...]:
-    """Uniforms each family takes from the block, in :data:`FAMILIES` order."""
-    return (1 + 3 * n, 5, 6 + 2 * n, 1 + 3 * n, _CURVE_UNIFORMS, _CURVE_UNIFORMS, 1 + 3 * n, 4 + 2 * n,
-            _VERTICAL_UNIFORMS)  # fmt: skip
+def _block(n: int) -> int:
+    """Uniforms a track draws: the most any family reads.  Only one candidate is kept, so the
+    families read the same numbers (a quarter of the threefry work of disjoint slices)."""
+    return max(1 + 3 * n, 5, 6 + 2 * n, _CURVE_UNIFORMS, 4 + 2 * n, _VERTICAL_UNIFORMS)
 
 
-def _candidates(u, n: int, dt: float, horizon_steps: int, cfg, acc_max, speed_max) -> tuple[tr.Track, ...]:
-    """One track of every family from the block ``u`` (``sum(_sizes(n))`` uniforms)."""
-    parts = jnp.split(u, [sum(_sizes(n)[:i]) for i in range(1, len(FAMILIES))])
+_CURVES = (FAMILIES.index("circle"), FAMILIES.index("figure8"), FAMILIES.index("vertical"))
+# candidate of each family: the three curve families share one (their Curve is picked first)
+_CANDIDATE = tuple(min(i, _CURVES[0]) if i in _CURVES else i - sum(c < i for c in _CURVES[1:]) for i in
+                   range(len(FAMILIES)))  # fmt: skip
+
+
+def _candidates(u, family, n: int, dt: float, horizon_steps: int, cfg, acc_max, speed_max):
+    """One track of every family from the start of the block ``u`` (:func:`_block` uniforms), the
+    three curve families as one tabulated :class:`Curve` (``family``'s, when it is one)."""
+    curves = (circle_curve(u), figure8_curve(u), vertical_curve(u))
+    which = sum(jnp.where(family == f, i, 0) for i, f in enumerate(_CURVES))
+    curve = jax.tree.map(lambda *x: jnp.stack(x)[which], *curves)
     curve_steps = max(1, -(-horizon_steps // n))  # ceil: n segments cover the horizon
-    curve = lambda path: _curve_table(path, n, curve_steps, dt, u.dtype)  # noqa: E731
     return (
-        tr._train_dynamics(parts[0], n, dt),  # the paper's families, as sample_train_track draws them
-        tr._train_spiral(parts[1], n),
-        tr._train_los(parts[2], n, dt, cfg),
-        _step(parts[3], n, dt),
-        curve(circle_path(parts[4])),
-        curve(figure8_path(parts[5])),
-        _agile(parts[6], n, dt, acc_max, speed_max),
-        _los_fast(parts[7], n, dt),
-        curve(vertical_path(parts[8])),
+        tr._train_dynamics(u[: 1 + 3 * n], n, dt),  # the paper's families, as sample_train_track draws them
+        tr._train_spiral(u[:5], n),
+        tr._train_los(u[: 6 + 2 * n], n, dt, cfg),
+        _step(u[: 1 + 3 * n], n, dt),
+        _curve_table(curve, n, curve_steps, dt, u.dtype),
+        _agile(u[: 1 + 3 * n], n, dt, acc_max, speed_max),
+        _los_fast(u[: 4 + 2 * n], n, dt),
     )
 
 
 def _pick(family, candidates: tuple[tr.Track, ...]) -> tr.Track:
-    """The candidate of index ``family`` (a traced int32)."""
-    return jax.tree.map(lambda *x: jnp.stack(x)[family], *candidates)
+    """The candidate of family ``family`` (a traced int32)."""
+    index = jnp.asarray(_CANDIDATE, jnp.int32)[family]
+    return jax.tree.map(lambda *x: jnp.stack(x)[index], *candidates)
 
 
 def sample_wide_track(key: jax.Array, weights=WIDE_MIX, dt: float = 1e-3, horizon_steps: int = 3002,
@@ -303,9 +319,11 @@ def sample_wide_track(key: jax.Array, weights=WIDE_MIX, dt: float = 1e-3, horizo
     w = jnp.cumsum(jnp.asarray(check_weights("weights", weights)))
     check_agile(agile_acc_max, agile_speed_max)
     n = tr._segments(num_segments, wide_num_segments(horizon_steps, dt), horizon_steps)
-    u = jax.random.uniform(jax.random.fold_in(key, _WIDE_TAG), (1 + sum(_sizes(n)),), tr._float())
+    u = jax.random.uniform(jax.random.fold_in(key, _WIDE_TAG), (1 + _block(n),), tr._float())
     family = jnp.sum(u[0] * w[-1] >= w[:-1].astype(u.dtype))
-    track = _pick(family, _candidates(u[1:], n, dt, horizon_steps, cfg, agile_acc_max, agile_speed_max))
+    track = _pick(
+        family, _candidates(u[1:], family, n, dt, horizon_steps, cfg, agile_acc_max, agile_speed_max)
+    )
     return (track, family) if with_family else track
 
 
@@ -328,8 +346,10 @@ def wide_validation_tracks(weights=WIDE_MIX, dt: float = 1e-3, horizon_steps: in
     base = jax.random.PRNGKey(_WIDE_VALIDATION_TAG)
 
     def one(i, family):
-        u = jax.random.uniform(jax.random.fold_in(base, i), (sum(_sizes(n)),), tr._float())
-        return _pick(family, _candidates(u, n, dt, horizon_steps, cfg, agile_acc_max, agile_speed_max))
+        u = jax.random.uniform(jax.random.fold_in(base, i), (_block(n),), tr._float())
+        return _pick(
+            family, _candidates(u, family, n, dt, horizon_steps, cfg, agile_acc_max, agile_speed_max)
+        )
 
     ids = jnp.asarray([FAMILIES.index(name) for name in names], jnp.int32)
     return jax.vmap(one)(jnp.arange(len(names)), ids)
