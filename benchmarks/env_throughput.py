@@ -79,7 +79,7 @@ class _NoLookup(TrackingEnv):
         )
         wrong = {k: getattr(c, k) for k, v in nominal.items() if getattr(c, k) != v}
         noisy = max(c.wind_sigma, c.obs_noise_pos, c.obs_noise_vel, c.obs_noise_quat) > 0
-        if wrong or noisy or self._rates_in_obs:
+        if wrong or noisy or self.layout.has("omega"):
             raise ValueError(f"{type(self).__name__} stands in for the nominal env only; got {wrong}")
 
     def observe(self, ps, p_ref_now=None):
@@ -97,7 +97,7 @@ class _NoObs(TrackingEnv):
 
     def observe(self, ps, p_ref_now=None):
         ps = ps.replace(ref_next=self.position(ps.track, ps.k + 1, self.config.dt))
-        return jnp.zeros(17, ps.quad.p.dtype).at[0].set(ps.quad.p[0]), ps
+        return jnp.zeros(self.observation_size, ps.quad.p.dtype).at[0].set(ps.quad.p[0]), ps
 
 
 class _Neither(_NoObs):

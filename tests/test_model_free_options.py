@@ -34,13 +34,15 @@ def test_memory_observes_last_action_and_leaky_error_integral():
     cfg = make_config("practical", obs_memory=True, memory_tau=0.5)
     env, s0, s1, s2 = _two_steps(cfg)
     assert env.observation_size == env.actor_observation_size == 24
-    np.testing.assert_array_equal(s0.obs[17:], np.zeros(7))
-    np.testing.assert_allclose(s2.obs[17:21], A2, atol=1e-7)
+    lay = env.layout
+    np.testing.assert_array_equal(s0.obs[lay.actor_size - 7 :], np.zeros(7))
+    np.testing.assert_allclose(s2.obs[lay.slice("last_action")], A2, atol=1e-7)
     dt, leak = cfg.control_dt, math.exp(-cfg.control_dt / 0.5)
     e = lambda s: tr.position(s.pipeline_state.track, s.pipeline_state.k, cfg.dt) - s.pipeline_state.quad.p  # noqa: E731
-    np.testing.assert_allclose(s2.obs[21:24], leak * dt * e(s1) + dt * e(s2), rtol=1e-5, atol=1e-8)
+    want = leak * dt * e(s1) + dt * e(s2)
+    np.testing.assert_allclose(s2.obs[lay.slice("error_integral")], want, rtol=1e-5, atol=1e-8)
     plain = _two_steps(make_config("practical", memory_tau=0.5))[3]
-    np.testing.assert_array_equal(s2.obs[:17], plain.obs)  # the first 17 are the paper's
+    np.testing.assert_array_equal(s2.obs[: plain.obs.shape[0]], plain.obs)  # the paper's parts first
 
 
 def test_privileged_tail_is_wind_and_the_reference_ahead():
@@ -48,11 +50,12 @@ def test_privileged_tail_is_wind_and_the_reference_ahead():
     env, _, _, s2 = _two_steps(cfg)
     assert (env.observation_size, env.actor_observation_size) == (26, 17)
     ps = s2.pipeline_state
-    np.testing.assert_allclose(s2.obs[17:20], ps.wind, rtol=1e-6)
+    assert env.layout.critic_only == ("wind", "p_ahead_0.5s", "p_ahead_1s")
+    np.testing.assert_allclose(s2.obs[env.layout.slice("wind")], ps.wind, rtol=1e-6)
     ahead = ps.k + cfg.lookahead_k
-    for i, t in enumerate((0.5, 1.0)):
+    for t in (0.5, 1.0):
         want = tr.position(ps.track, ahead + round(t / cfg.dt), cfg.dt) - tr.position(ps.track, ahead, cfg.dt)
-        np.testing.assert_allclose(s2.obs[20 + 3 * i : 23 + 3 * i], want, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(s2.obs[env.layout.slice(f"p_ahead_{t:g}s")], want, rtol=1e-5, atol=1e-6)
     # the track table covers the extra second of look-ahead
     assert cfg.horizon_steps == make_config("practical").horizon_steps + 1000
 

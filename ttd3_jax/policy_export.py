@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ttd3_jax import runs
+from ttd3_jax.sim import observation
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.env import thrust_range
 from ttd3_jax.td3 import networks
@@ -145,13 +146,10 @@ def c_header(p: Policy, note: str = "") -> str:
 
 
 def observation_layout(cfg: EnvConfig, obs_size: int) -> list[str]:
-    """Names of the observation's entries in order (``sim.env.TrackingEnv.observe``)."""
-    rel = cfg.obs_frame == "track"  # positions relative to p_d,k
-    names = [f"{'p - p_d' if rel else 'p'}.{a}" for a in "xyz"] + [f"v.{a}" for a in "xyz"]
-    names += [f"q.{a}" for a in "wxyz"]
-    names += [f"{'p_ahead - p_d' if rel else 'p_ahead'}.{a}" for a in "xyz"]
-    names += [f"p_ahead - p.{a}" for a in "xyz"] + ["|p_err - p|"]
-    names += [f"omega.{a}" for a in "xyz"][: max(0, obs_size - len(names))]
+    """Names of the observation's entries in order (:func:`ttd3_jax.sim.observation.layout`)."""
+    names = observation.layout(cfg).names
+    if len(names) != obs_size:
+        raise ValueError(f"the observation layout has {len(names)} entries, the policy reads {obs_size}")
     return names
 
 
@@ -203,6 +201,7 @@ def observation_spec(cfg: EnvConfig, obs_size: int) -> dict:
     track = cfg.obs_frame == "track"
     return dict(
         names=observation_layout(cfg, obs_size),
+        parts=observation.layout(cfg).describe(),
         frame=(
             "track: positions relative to p_d,k, the reference at the current physics step k (a shift "
             "of origin only; the axes are the world's); velocity stays world-frame"

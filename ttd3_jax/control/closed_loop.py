@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from ttd3_jax.sim import observation
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.dynamics import QuadState
@@ -43,13 +44,15 @@ def sensed_controller(controller: Controller, cfg: EnvConfig) -> Controller:
     reaches classical controllers as it reaches a policy.  Without noise the two agree
     (q and −q are the same attitude; track-frame positions are shifted back)."""
 
+    lay = observation.layout(cfg)
+
     def sensed(s):
         ps, o = s.pipeline_state, s.obs
-        p = o[0:3]
+        p = o[lay.slice("p")]
         if cfg.obs_frame == "track":
             p = p + tr.position(ps.track, ps.k, cfg.dt).astype(p.dtype)
-        w = o[17:20] if cfg.quad.rate_model != "instant" else ps.quad.w
-        quad = QuadState(p=p, v=o[3:6], q=o[6:10], w=w)
+        w = o[lay.slice("omega")] if lay.has("omega") else ps.quad.w
+        quad = QuadState(p=p, v=o[lay.slice("v")], q=o[lay.slice("q")], w=w)
         return s.replace(pipeline_state=ps.replace(quad=quad))
 
     return Controller(

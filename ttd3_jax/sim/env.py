@@ -4,13 +4,14 @@ One control step (``env.step``) applies a normalised action ``a ∈ [-1, 1]^4`` 
 ``action_repeat`` physics steps of ``dt`` seconds (one 1 ms RK4 step in the ``paper``
 preset); the configuration is :class:`~ttd3_jax.sim.config.EnvConfig`.
 
-Observation at physics step k (17-D, raw units, O1)::
+Observation at physics step k (raw units, O1), the parts of :func:`ttd3_jax.sim.observation.layout`::
 
     [p_k (3, m), v_k (3, m/s), q_k (4, qw>=0), p_d,k+L (3, m), p_d,k+L - p_k (3, m),
      ||p_d,k' - p_k|| (1, m)]          (+ ω_k (3, rad/s) for the first_order/torque models)
 
 with L = ``lookahead_k`` (1 in the paper) and k' = k (``err_ref="current"``) or k+1.
 ``obs_frame="track"`` moves the origin of the two absolute positions to p_d,k.
+``obs_memory`` and ``obs_privileged`` append the parts the layout names after these.
 Reward per physics step, with e' = ||p_d,k+1 - p_k+1|| after the step (R1-R3)::
 
     r = -rho1 * r_e(e') - rho2 * aᵀ Ω a,   r_e(e) = e if e² <= 1 else e²
@@ -37,7 +38,7 @@ with contextlib.redirect_stdout(io.StringIO()):
     from brax.envs.base import Env, State
 
 from ttd3_jax.sim import custom_tracks as ct
-from ttd3_jax.sim import rng
+from ttd3_jax.sim import observation, rng
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import PRIVILEGED_AHEAD_S, EnvConfig, make_config
 from ttd3_jax.sim.dynamics import QuadState, quat_from_axis_angle, quat_mul, rk4_step
@@ -151,11 +152,11 @@ class TrackingEnv(Env):
             self._mix_n, self._n_seg = self._n_seg, max(self._n_seg, *(t.num_segments for t in user))
             self._user = jax.tree.map(lambda *x: jnp.stack(x), *(ct.pad(t, self._n_seg, c.dt) for t in user))
         self._effort_w = tuple(float(w) for w in c.effort_weights)
-        self._rates_in_obs = c.quad.rate_model != "instant"
+        self.layout = observation.layout(c)  # the named parts of the observation
 
     # the Brax Env interface; dt is seconds per env step, num_segments the static track-table size
-    actor_observation_size = property(lambda self: 17 + 3 * self._rates_in_obs + 7 * self.config.obs_memory)
-    observation_size = property(lambda self: self.actor_observation_size + 9 * self.config.obs_privileged)
+    actor_observation_size = property(lambda self: self.layout.actor_size)
+    observation_size = property(lambda self: self.layout.size)
     action_size = property(lambda self: 4)
     backend = property(lambda self: "jax")
     dt = property(lambda self: self.config.control_dt)
@@ -323,20 +324,23 @@ class TrackingEnv(Env):
         else:
             p_err = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
         err = jnp.linalg.norm(p_err - p)
-        if c.obs_frame == "track":  # same 17 numbers with the origin moved to p_d,k
+        if c.obs_frame == "track":  # the same parts with the origin moved to p_d,k
             p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
-            parts = [p - p_now, v, q, p_ahead - p_now, p_ahead - p, err[None]]
+            parts = dict(p=p - p_now, v=v, q=q, p_ahead=p_ahead - p_now)
         else:
-            parts = [p, v, q, p_ahead, p_ahead - p, err[None]]
-        if self._rates_in_obs:
-            parts.append(x.w)
+            parts = dict(p=p, v=v, q=q, p_ahead=p_ahead)
+        parts.update(p_ahead_error=p_ahead - p, error=err[None])
+        if self.layout.has("omega"):
+            parts["omega"] = x.w
         if c.obs_memory:
-            parts += [ps.last_action, ps.err_int]
+            parts.update(last_action=ps.last_action, error_integral=ps.err_int)
         if c.obs_privileged:
-            ahead = [ps.k + c.lookahead_k + round(t / c.dt) for t in PRIVILEGED_AHEAD_S]
-            parts += [ps.wind] + [tr.position(ps.track, k, c.dt) - p_ahead for k in ahead]
+            parts["wind"] = ps.wind
+            for t in PRIVILEGED_AHEAD_S:
+                k = ps.k + c.lookahead_k + round(t / c.dt)
+                parts[f"p_ahead_{t:g}s"] = tr.position(ps.track, k, c.dt) - p_ahead
         # non-finite entries (a diverged state) read as 0, in one read of the concatenation
-        return _zero_non_finite(jnp.concatenate(parts)), ps
+        return _zero_non_finite(self.layout.build(parts, jnp.concatenate)), ps
 
 
 def ou_wind_step(c: EnvConfig, wind: jax.Array, key: jax.Array):
