@@ -41,7 +41,7 @@ from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import observation, rng
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import PRIVILEGED_AHEAD_S, EnvConfig, make_config
-from ttd3_jax.sim.dynamics import QuadState, quat_from_axis_angle, quat_mul, rk4_step
+from ttd3_jax.sim.dynamics import QuadParams, QuadState, quat_from_axis_angle, quat_mul, rk4_step
 
 _USER_TAG = 0x05E7  # folded into a reset's track key to pick users' training tracks
 
@@ -111,6 +111,9 @@ class TrackingState:
     wind: jax.Array  # (3,) m/s^2, OU acceleration disturbance
     key: jax.Array  # PRNG key for wind and observation noise
     ref_next: jax.Array  # (3,) m, p_d(k+1), cached by ``observe`` for the next reward
+    # this env's vehicle (QuadParams of arrays, see ``vehicle_arrays``), or None: the config's
+    # ``quad``.  None adds no leaves, so the nominal env keeps its layout (and checkpoints)
+    vehicle: QuadParams | None
 
 
 @struct.dataclass
@@ -163,10 +166,11 @@ class TrackingEnv(Env):
     episode_length = property(lambda self: self.config.episode_length)
     num_segments = property(lambda self: self._n_seg)
 
-    def reset(self, rng: jax.Array) -> State:
-        """New episode: a track drawn per ``config.track`` and an initial state (R5)."""
+    def reset(self, rng: jax.Array, vehicle: QuadParams | None = None) -> State:
+        """New episode: a track drawn per ``config.track`` and an initial state (R5), flying
+        ``vehicle`` (None: the config's ``quad``; see :meth:`reset_with_track`)."""
         k_track, k_rest = jax.random.split(rng)
-        return self.reset_with_track(k_rest, self.sample_track(k_track))
+        return self.reset_with_track(k_rest, self.sample_track(k_track), vehicle)
 
     def sample_track(self, rng: jax.Array) -> tr.Track:
         """The track an episode uses under ``config.track``."""
@@ -189,8 +193,9 @@ class TrackingEnv(Env):
             return tr.spiral_rt(c.tracks, n)
         return tr.los_test_track(c.los_seed, c.tracks, num_segments=n, dt=c.dt, horizon_steps=c.horizon_steps)
 
-    def reset_with_track(self, rng: jax.Array, track: tr.Track) -> State:
-        """New episode on a given track (used by evaluation over many tracks)."""
+    def reset_with_track(self, rng: jax.Array, track: tr.Track, vehicle: QuadParams | None = None) -> State:
+        """New episode on a given track (used by evaluation over many tracks), flying
+        ``vehicle`` (:func:`vehicle_arrays`; None: the config's ``quad``, read as constants)."""
         c = self.config
         k_init, k_wind, k_next = jax.random.split(rng, 3)
         quad = self._initial_state(k_init, tr.position(track, 0, c.dt))
@@ -199,7 +204,8 @@ class TrackingEnv(Env):
         if c.wind_sigma > 0:
             wind = c.wind_sigma * jax.random.normal(k_wind, (3,), f)
         fields = dict(quad=quad, k=jnp.zeros((), jnp.int32), track=track, wind=wind, key=k_next)
-        fields["ref_next"] = jnp.zeros(3, f)
+        vehicle = None if vehicle is None else vehicle_arrays(vehicle, f)
+        fields.update(ref_next=jnp.zeros(3, f), vehicle=vehicle)
         if c.action_delay:
             ps = DelayedTrackingState(**fields, prev_action=hover_action(c).astype(f))
         elif c.obs_memory:
@@ -220,15 +226,16 @@ class TrackingEnv(Env):
         a = jnp.clip(action, -1.0, 1.0).astype(ps.quad.p.dtype)
         if c.action_delay:
             a, ps = ps.prev_action, ps.replace(prev_action=a)
-        u = action_to_control(c, a)
+        u = action_to_control(c, a)  # the action map of the config's (nominal) vehicle
         effort = self._effort(a)
         zero = jnp.zeros((), ps.quad.p.dtype)
         carry = (ps.quad, ps.k, ps.wind, ps.key, zero, zero, jnp.zeros((), bool))
+        quad = c.quad if ps.vehicle is None else ps.vehicle  # the vehicle flown
         if c.action_repeat == 1:
-            carry, p_ref = self._substep(ps.track, u, effort, carry, ps.ref_next)
+            carry, p_ref = self._substep(quad, ps.track, u, effort, carry, ps.ref_next)
         else:  # one compiled body, whatever the repeat count
             carry, p_refs = jax.lax.scan(
-                lambda cr, _: self._substep(ps.track, u, effort, cr), carry, None, c.action_repeat
+                lambda cr, _: self._substep(quad, ps.track, u, effort, cr), carry, None, c.action_repeat
             )
             p_ref = p_refs[-1]
         quad, k, wind, key, reward, err_sum, crashed = carry
@@ -250,8 +257,8 @@ class TrackingEnv(Env):
         done = (terminated | truncated).astype(f)
         return state.replace(pipeline_state=ps, obs=obs, reward=reward, done=done, metrics=metrics, info=info)
 
-    def _substep(self, track, u, effort, carry, p_ref=None):
-        """One physics step of ``dt``: wind, RK4, tracking error, reward, crash flag.
+    def _substep(self, params, track, u, effort, carry, p_ref=None):
+        """One physics step of ``dt`` of vehicle ``params``: wind, RK4, tracking error, reward, crash flag.
 
         ``carry = (quad, k, wind, key, reward, err_sum, crashed)``; ``p_ref`` may pass
         p_d(k+1) when it is already known.  Returns the new carry and p_d(k+1)."""
@@ -260,7 +267,7 @@ class TrackingEnv(Env):
         if c.wind_sigma > 0:
             wind, key = ou_wind_step(c, wind, key)
         quad = rk4_step(
-            c.quad, quad, u, c.dt, wind if c.wind_sigma > 0 else None, c.rk4_substeps, c.renormalize
+            params, quad, u, c.dt, wind if c.wind_sigma > 0 else None, c.rk4_substeps, c.renormalize
         )
         k = k + 1
         step_r = -c.rho2 * effort
@@ -341,6 +348,14 @@ class TrackingEnv(Env):
                 parts[f"p_ahead_{t:g}s"] = tr.position(ps.track, k, c.dt) - p_ahead
         # non-finite entries (a diverged state) read as 0, in one read of the concatenation
         return _zero_non_finite(self.layout.build(parts, jnp.concatenate)), ps
+
+
+def vehicle_arrays(quad: QuadParams, dtype=None) -> QuadParams:
+    """``quad`` with every numeric field a JAX scalar of ``dtype`` (the state's float type):
+    what an env state carries as its vehicle.  Stack several (``jax.tree.map(jnp.stack)``)
+    and vmap ``reset_with_track`` over them to fly a different vehicle in each env."""
+    dtype = dtype or jnp.zeros(()).dtype
+    return jax.tree.map(lambda x: jnp.asarray(x, dtype), quad)
 
 
 def ou_wind_step(c: EnvConfig, wind: jax.Array, key: jax.Array):
