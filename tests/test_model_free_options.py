@@ -3,7 +3,6 @@ and privileged tail, the log error cost, the actor's input slice and the residua
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import jax
@@ -52,7 +51,7 @@ def test_privileged_tail_is_wind_and_the_reference_ahead():
     ps = s2.pipeline_state
     assert env.layout.critic_only == ("wind", "p_ahead_0.5s", "p_ahead_1s")
     np.testing.assert_allclose(s2.obs[env.layout.slice("wind")], ps.wind, rtol=1e-6)
-    ahead = ps.k + cfg.lookahead_k
+    ahead = ps.k + cfg.observation.lookahead_k
     for t in (0.5, 1.0):
         want = tr.position(ps.track, ahead + round(t / cfg.dt), cfg.dt) - tr.position(ps.track, ahead, cfg.dt)
         np.testing.assert_allclose(s2.obs[env.layout.slice(f"p_ahead_{t:g}s")], want, rtol=1e-5, atol=1e-6)
@@ -72,13 +71,13 @@ def test_log_error_cost_and_its_crash_cost():
     [
         (dict(err_scale=0.0), "err_scale"),
         (dict(memory_tau=-1.0), "memory_tau"),
-        (dict(obs_memory=True, action_delay=1), "obs_memory needs action_delay 0"),
+        (dict(obs_memory=True, action_delay=1), "obs_memory needs disturbances.action_delay 0"),
         (dict(obs_privileged=1), "obs_privileged"),
     ],
 )
 def test_option_validation(kwargs, match):
     with pytest.raises(ValueError, match=match):
-        EnvConfig(**kwargs)
+        EnvConfig().replace(**kwargs)
     with pytest.raises(ValueError, match="critic_arch must be one of"):
         TrainConfig(critic_arch="transformer")
 
@@ -97,7 +96,7 @@ def test_actor_reads_only_its_slice_and_residual_critic_shapes():
 
 def test_one_epoch_with_every_option_trains_and_stays_finite():
     s = tiny(critic_arch="residual", n_step=3)
-    s = sp.replace(s, task=dataclasses.replace(s.task, obs_memory=True, obs_privileged=True, err_cost="log"))
+    s = sp.replace(s, task=s.task.replace(obs_memory=True, obs_privileged=True, err_cost="log"))
     t = sp.trainer_for(s)
     assert (t.env.obs_size, t.env.actor_obs_size) == (33, 24)
     ts = jax.jit(t.init)(seed_keys(0, 1)[0], s.hp)

@@ -35,9 +35,9 @@ def test_the_parts_cover_the_observation_exactly_once(overrides):
     assert env.observation_size == lay.size and env.actor_observation_size == lay.actor_size
     assert env.reset(jax.random.PRNGKey(0)).obs.shape == (lay.size,)
     only = [p.name for p in lay.parts if p.critic_only]
-    assert lay.critic_only == tuple(only) and bool(only) == cfg.obs_privileged
+    assert lay.critic_only == tuple(only) and bool(only) == cfg.observation.obs_privileged
     assert all(lay.slice(name).start >= lay.actor_size for name in only)  # the actor reads a prefix
-    assert lay.has("omega") == (cfg.quad.rate_model != "instant")
+    assert lay.has("omega") == (cfg.vehicle.quad.rate_model != "instant")
 
 
 def test_the_observation_is_the_layouts_parts_in_order():

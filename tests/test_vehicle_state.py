@@ -39,10 +39,13 @@ def stacked(*quads):
 
 def test_an_env_without_a_vehicle_carries_no_vehicle_leaves():
     env = TrackingEnv(make_config("paper"))
-    plain, carried = env.reset(jax.random.PRNGKey(0)), env.reset(jax.random.PRNGKey(0), env.config.quad)
+    plain, carried = (
+        env.reset(jax.random.PRNGKey(0)),
+        env.reset(jax.random.PRNGKey(0), env.config.vehicle.quad),
+    )
     assert plain.pipeline_state.vehicle is None  # the nominal state keeps its layout and checkpoints
     extra = len(jax.tree.leaves(carried)) - len(jax.tree.leaves(plain))
-    assert extra == len(jax.tree.leaves(env.config.quad)) > 0
+    assert extra == len(jax.tree.leaves(env.config.vehicle.quad)) > 0
 
 
 @pytest.mark.parametrize("preset", ["paper", "practical"])
@@ -51,13 +54,13 @@ def test_the_nominal_vehicle_in_the_state_flies_as_the_configs(preset):
     a constant mass becomes a product with its reciprocal), values read from the state are
     not folded, so a few last bits move (3e-9 m over 200 steps when measured)."""
     env = TrackingEnv(make_config(preset, quad=QuadParams.create(rate_model="first_order")))
-    old, new = rollout(env), rollout(env, stacked(*[env.config.quad] * N_ENVS))
+    old, new = rollout(env), rollout(env, stacked(*[env.config.vehicle.quad] * N_ENVS))
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), old, new)
 
 
 def test_two_masses_in_one_vmapped_program_diverge():
     env = TrackingEnv(make_config("paper", wind_sigma=0.0))
-    nominal = env.config.quad
+    nominal = env.config.vehicle.quad
     heavy = dataclasses.replace(nominal, mass=1.2 * nominal.mass)
     mixed = rollout(env, stacked(nominal, heavy, nominal, heavy))[0].p
     same = rollout(env, stacked(*[nominal] * N_ENVS))[0].p

@@ -5,7 +5,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -49,7 +48,7 @@ def sensed_controller(controller: Controller, cfg: EnvConfig) -> Controller:
     def sensed(s):
         ps, o = s.pipeline_state, s.obs
         p = o[lay.slice("p")]
-        if cfg.obs_frame == "track":
+        if cfg.observation.obs_frame == "track":
             p = p + tr.position(ps.track, ps.k, cfg.dt).astype(p.dtype)
         w = o[lay.slice("omega")] if lay.has("omega") else ps.quad.w
         quad = QuadState(p=p, v=o[lay.slice("v")], q=o[lay.slice("q")], w=w)
@@ -81,7 +80,7 @@ def closed_loop(env: TrackingEnv, controller: Controller, state) -> Rollout:
         s, ctrl = carry
         a, ctrl = controller.act(ctrl, s)
         # the action the env applies now: the previous one under ``action_delay = 1``
-        applied = s.pipeline_state.prev_action if c.action_delay else jnp.clip(a, -1.0, 1.0)
+        applied = s.pipeline_state.prev_action if c.disturbances.action_delay else jnp.clip(a, -1.0, 1.0)
         s = env.step(s, a)
         ps, m = s.pipeline_state, s.metrics
         ref = tr.position(ps.track, ps.k, c.dt)
@@ -114,7 +113,7 @@ def to_paper_map(actions, cfg: EnvConfig) -> np.ndarray:
     """Normalised actions (..., 4) of an env with config ``cfg`` in the paper's action map
     (O2: thrust f_min + (a0+1)/2·(f_max − f_min), no hover centring): the same physical
     commands, so controllers trained or built with different maps become comparable."""
-    paper = dataclasses.replace(cfg, hover_centered_thrust=False, thrust_map_mass=None)
+    paper = cfg.replace(hover_centered_thrust=False, thrust_map_mass=None)
     return np.asarray(control_to_action(paper, action_to_control(cfg, jnp.asarray(actions))))
 
 
@@ -131,8 +130,8 @@ def test_tracks(env: TrackingEnv, los_seeds=(0,)) -> tr.Track:
     axis with the table size of ``env`` (so one ``vmap`` evaluates them all)."""
     c = env.config
     n = env.num_segments
-    tracks = [tr.spiral_rt(c.tracks, n)] + [
-        tr.los_test_track(s, c.tracks, num_segments=n, dt=c.dt, horizon_steps=c.horizon_steps)
+    tracks = [tr.spiral_rt(c.tracks.generator, n)] + [
+        tr.los_test_track(s, c.tracks.generator, num_segments=n, dt=c.dt, horizon_steps=c.horizon_steps)
         for s in los_seeds
     ]
     return jax.tree.map(lambda *x: jnp.stack(x), *tracks)
@@ -160,6 +159,6 @@ def test_and_validation_metrics(cfg: EnvConfig, controller: Controller) -> dict:
     for i, name in enumerate(("spiral", "los")):
         out.update({f"{name}_{k}": v[i] for k, v in m.items()})
     venv = TrackingEnv(cfg.for_eval("validation"))
-    val = tr.validation_tracks(cfg.tracks, cfg.dt, cfg.horizon_steps, venv.num_segments)
+    val = tr.validation_tracks(cfg.tracks.generator, cfg.dt, cfg.horizon_steps, venv.num_segments)
     out["val_tracking_error"] = jnp.mean(evaluate_on_tracks(venv, controller, val)["tracking_error"])
     return out

@@ -97,7 +97,7 @@ def _vec(prefix: str) -> tuple[str, ...]:
 
 def layout(cfg: EnvConfig) -> ObsLayout:
     """The observation of an env with configuration ``cfg`` (O1, then this project's parts)."""
-    rel = cfg.obs_frame == "track"  # positions relative to p_d,k
+    rel = cfg.observation.obs_frame == "track"  # positions relative to p_d,k
     where = " relative to p_d,k" if rel else ", world frame"
     parts = [
         Part("p", _vec("p - p_d" if rel else "p"), f"position (m){where}"),
@@ -111,14 +111,14 @@ def layout(cfg: EnvConfig) -> ObsLayout:
         Part("p_ahead_error", _vec("p_ahead - p"), "p_d,k+L - p (m)"),
         Part("error", ("|p_err - p|",), "||p_err - p|| (m), p_err = p_d,k or p_d,k+1 (err_ref)"),
     ]
-    if cfg.quad.rate_model != "instant":
+    if cfg.vehicle.quad.rate_model != "instant":
         parts.append(Part("omega", _vec("omega"), "body rates (rad/s), body frame"))
-    if cfg.obs_memory:
+    if cfg.observation.obs_memory:
         parts.append(Part("last_action", tuple(f"last_action.{i}" for i in range(4)),
                           "the action the last step applied (zeros at reset)"))  # fmt: skip
         parts.append(Part("error_integral", _vec("error_integral"),
                           "leaky integral of p_d - p (m s), leak time constant memory_tau"))  # fmt: skip
-    if cfg.obs_privileged:
+    if cfg.observation.obs_privileged:
         parts.append(Part("wind", _vec("wind"), "the wind acceleration (m/s^2)", critic_only=True))
         for t in PRIVILEGED_AHEAD_S:
             meaning = f"the reference {t:g} s after p_d,k+L, relative to it (m)"
