@@ -110,9 +110,6 @@ class TrackingState:
     wind: jax.Array  # (3,) m/s^2, OU acceleration disturbance
     key: jax.Array  # PRNG key for wind and observation noise
     ref_next: jax.Array  # (3,) m, p_d(k+1), cached by ``observe`` for the next reward
-    # this env's vehicle (QuadParams of arrays, see ``vehicle_arrays``), or None: the config's
-    # ``quad``.  None adds no leaves, so the nominal env keeps its layout (and checkpoints)
-    vehicle: QuadParams | None
 
 
 @struct.dataclass
@@ -207,8 +204,7 @@ class TrackingEnv(Env):
         if c.disturbances.wind_sigma > 0:
             wind = c.disturbances.wind_sigma * jax.random.normal(k_wind, (3,), f)
         fields = dict(quad=quad, k=jnp.zeros((), jnp.int32), track=track, wind=wind, key=k_next)
-        vehicle = None if vehicle is None else vehicle_arrays(vehicle, f)
-        fields.update(ref_next=jnp.zeros(3, f), vehicle=vehicle)
+        fields["ref_next"] = jnp.zeros(3, f)
         if c.disturbances.action_delay:
             ps = DelayedTrackingState(**fields, prev_action=hover_action(c).astype(f))
         elif c.observation.obs_memory:
@@ -219,6 +215,8 @@ class TrackingEnv(Env):
         zero = jnp.zeros((), f)
         metrics = {"tracking_error": zero, "energy": zero, "energy_sq": zero, "crashed": zero}
         info = {"truncation": zero, "terminated": zero}
+        if vehicle is not None:  # only then: a nominal env keeps its state's layout (and checkpoints)
+            info["vehicle"] = vehicle_arrays(vehicle, f)
         return State(pipeline_state=ps, obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
 
     def step(self, state: State, action: jax.Array) -> State:
@@ -233,7 +231,7 @@ class TrackingEnv(Env):
         effort = self._effort(a)
         zero = jnp.zeros((), ps.quad.p.dtype)
         carry = (ps.quad, ps.k, ps.wind, ps.key, zero, zero, jnp.zeros((), bool))
-        quad = c.vehicle.quad if ps.vehicle is None else ps.vehicle  # the vehicle flown
+        quad = state.info.get("vehicle", c.vehicle.quad)  # the vehicle flown
         if c.action_repeat == 1:
             carry, p_ref = self._substep(quad, ps.track, u, effort, carry, ps.ref_next)
         else:  # one compiled body, whatever the repeat count
