@@ -35,7 +35,6 @@ Each line is ``name sha256-prefix``:
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import hashlib
 import os
 import re
@@ -87,13 +86,11 @@ def env_cases():
     practical = make_config("practical")
     return {
         "env_paper": paper,
-        "env_paper_nowind": dataclasses.replace(paper, wind_sigma=0.0),
+        "env_paper_nowind": paper.replace(wind_sigma=0.0),
         "env_practical": practical,
-        "env_practical_fast": dataclasses.replace(practical, hover_centered_thrust=True),
+        "env_practical_fast": practical.replace(hover_centered_thrust=True),
         "env_eval_spiral": practical.for_eval("spiral_rt", wind_sigma=0.5),
-        "env_obs_noise": dataclasses.replace(
-            paper, obs_noise_pos=0.01, obs_noise_vel=0.02, obs_noise_quat=0.01
-        ),
+        "env_obs_noise": paper.replace(obs_noise_pos=0.01, obs_noise_vel=0.02, obs_noise_quat=0.01),
     }
 
 

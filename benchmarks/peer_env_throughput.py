@@ -33,7 +33,6 @@ crazyflow (worker; 1 kHz sim, RK4 integrator, controllers at 1 kHz):
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import sys
 
@@ -68,13 +67,13 @@ def build_ours(case: str, envs: int, steps: int):
     from ttd3_jax.sim.dynamics import QuadParams
 
     base = make_config("paper")
-    nominal = dataclasses.replace(base, wind_sigma=0.0)
+    nominal = base.replace(wind_sigma=0.0)
     if case == "rk4":
         fn, x0 = rk4_case(base, envs, steps)
     elif case == "env_nominal":
         fn, x0 = env_case(nominal, envs, steps)
     elif case == "env_torque":
-        cfg = dataclasses.replace(nominal, quad=QuadParams.create(rate_model="torque"))
+        cfg = nominal.replace(quad=QuadParams.create(rate_model="torque"))
         fn, x0 = env_case(cfg, envs, steps)
     else:
         raise ValueError(case)

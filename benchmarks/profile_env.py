@@ -18,7 +18,6 @@ os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_
 
 import argparse  # noqa: E402
 import collections  # noqa: E402
-import dataclasses  # noqa: E402
 import glob  # noqa: E402
 import gzip  # noqa: E402
 import json  # noqa: E402
@@ -98,7 +97,7 @@ def main(argv=None):
         ap.error("--envs, --steps and --top must be >= 1")
 
     base = make_config("paper")
-    nominal = dataclasses.replace(base, wind_sigma=0.0)
+    nominal = base.replace(wind_sigma=0.0)
     fn, x0 = {
         "rk4": lambda: et.rk4_case(base, args.envs, args.steps),
         "env_nominal": lambda: et.env_case(nominal, args.envs, args.steps),

@@ -16,7 +16,6 @@ direction measured so far, rebuilt each time).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime
 import json
 import os
@@ -134,7 +133,7 @@ def spec_for(name: str) -> sp.RunSpec:
     """The run spec of direction ``name``: ``fast_dpg`` with its changes, 3 seeds."""
     _, task_o, train_o, hp_o = DIRECTIONS[name]
     s = sp.preset("fast_dpg", num_seeds=SEEDS)
-    return sp.replace(s, task=dataclasses.replace(s.task, **task_o), hp=s.hp.replace(**hp_o), **train_o)
+    return sp.replace(s, task=s.task.replace(**task_o), hp=s.hp.replace(**hp_o), **train_o)
 
 
 def measure(name: str, out: str, runs_dir: str, resume: str | None = None) -> dict:

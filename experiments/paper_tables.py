@@ -81,9 +81,11 @@ def train(algo: str, preset: str, overrides: dict, runs_dir: str) -> tuple[str, 
 
 def env_preset_of(cfg: EnvConfig) -> str:
     """The env preset ``cfg`` is (with its thrust centring and observation extras), or ``"custom"``."""
-    extras = [name for name in ("obs_memory", "obs_privileged") if getattr(cfg, name)]
-    base = dataclasses.replace(cfg, obs_memory=False, obs_privileged=False)
-    same = (p for p in PRESETS if base == make_config(p, hover_centered_thrust=cfg.hover_centered_thrust))
+    extras = [name for name in ("obs_memory", "obs_privileged") if cfg.get(name)]
+    base = cfg.replace(obs_memory=False, obs_privileged=False)
+    same = (
+        p for p in PRESETS if base == make_config(p, hover_centered_thrust=cfg.vehicle.hover_centered_thrust)
+    )
     return next(same, "custom") + "".join(f" + {e}" for e in extras)
 
 
@@ -114,7 +116,7 @@ def evaluate_row(cfg: EnvConfig, build, theta, los_seeds: tuple, repeats: int, s
     out["compile_s"] = dict(ev.compile_s)
     if cfg.action_repeat != 1:
         # the paper timed 3000 controller outputs; time the policy at 1 kHz as well
-        cfg1 = dataclasses.replace(cfg, action_repeat=1)
+        cfg1 = cfg.replace(action_repeat=1)
         ev1 = Evaluator(TrackingEnv(cfg1.for_eval("los_rt")), build, sequential)
         b1 = test_tracks(ev1.env, (0,))
         for i, name in enumerate(TRACKS):

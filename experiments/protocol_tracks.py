@@ -49,7 +49,7 @@ def protocol_tracks() -> dict[str, np.ndarray]:
         env = TrackingEnv(c.for_eval("los_rt", los_seed=s))
         out[f"los_rt_seed{s:02d}"] = _positions(env.sample_track(None), c.dt)
     n_seg = tr.train_num_segments(c.horizon_steps, c.dt)
-    bank = tr.validation_tracks(c.tracks, c.dt, c.horizon_steps, n_seg)
+    bank = tr.validation_tracks(c.tracks.generator, c.dt, c.horizon_steps, n_seg)
     for i in range(tr.NUM_VALIDATION_TRACKS):
         track = jax.tree.map(lambda x, i=i: x[i], bank)
         out[f"validation_{i:02d}"] = _positions(track, c.dt)

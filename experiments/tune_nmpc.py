@@ -61,7 +61,7 @@ def main(argv=None) -> int:
 
     env = TrackingEnv(make_config(args.preset).for_eval("validation"))
     c = env.config
-    bank = tr.validation_tracks(c.tracks, c.dt, c.horizon_steps, env.num_segments)
+    bank = tr.validation_tracks(c.tracks.generator, c.dt, c.horizon_steps, env.num_segments)
     tracks = jax.tree.map(lambda x: x[: args.num_tracks], bank)
     kinds = ["spiral" if int(k) == tr.SPIRAL else "piecewise" for k in np.asarray(tracks.kind)]
     print(

@@ -14,6 +14,7 @@ from tiny import TINY_CLI, tiny
 from ttd3_jax import evaluate, export, run_state, runs, train
 from ttd3_jax import spec as sp
 from ttd3_jax.sim import custom_tracks as ct
+from ttd3_jax.sim.config import GROUPS
 
 HERE = os.path.dirname(__file__)
 T = ["--total-transitions", "20000", "--epochs", "2"]
@@ -40,13 +41,16 @@ def refused(main, argv, capsys) -> str:
         ([*T, "--out", "/proc/ttd3"], r"--out '/proc/ttd3': cannot write in '/proc'"),
         (["--preset", "", *T], r"--preset must be one of .*got ''"),
         (["--out", "", *T], r"--out must name a directory, got ''"),
-        ([*T, "--task.tracks.los-climb-rate", "inf"], r"los_climb_rate must be a finite number"),
-        ([*T, "--task.tracks.los-init-point", "nan", "0", "0"], r"los_init_point must be 3 finite numbers"),
+        ([*T, "--task.tracks.generator.los-climb-rate", "inf"], r"los_climb_rate must be a finite number"),
+        (
+            [*T, "--task.tracks.generator.los-init-point", "nan", "0", "0"],
+            r"los_init_point must be 3 finite numbers",
+        ),
         (
             [*T, "--normalize-obs", "false"],
             r"--normalize-obs takes no value: .* --no-normalize-obs for false",
         ),
-        ([*T, "--task.obs-memory", "no"], r"--task.no-obs-memory for false"),
+        ([*T, "--task.observation.obs-memory", "no"], r"--task.observation.no-obs-memory for false"),
         ([*T, "--hp.lr-critic", "1e30"], r"hp.lr_critic must be a finite number in \(0, 1\]"),
         ([*T, "--hp.reward-scale", "1e30"], r"hp.reward_scale must be a finite number in \(0, 1000\]"),
         (["--epochs", "x"], r"python -m ttd3_jax.train --help"),  # tyro names the module, not train.py
@@ -122,8 +126,8 @@ def test_export_out_must_be_a_writable_directory(tmp_path, capsys):
             "field \"train.hidden\" - should be a list, got '64,64'",
         ),
         (
-            lambda d: (d["task"].pop("obs_frame"), d["task"].pop("lookahead_k")),
-            'fields "task.lookahead_k", "task.obs_frame" are missing',
+            lambda d: [d["task"]["observation"].pop(k) for k in ("obs_frame", "lookahead_k")],
+            'fields "task.observation.lookahead_k", "task.observation.obs_frame" are missing',
         ),
         (lambda d: d["train"].pop("critic_arch"), 'field "train.critic_arch"'),
     ],
@@ -141,25 +145,52 @@ def test_a_config_json_missing_a_field_or_of_a_wrong_type_is_refused(tmp_path, e
     assert "resumed" not in capsys.readouterr().out
 
 
+def flat_task(task: dict) -> dict:
+    """A grouped task as config.json formats 0-2 stored it: flat, TrackConfig as "tracks"."""
+    out = {k: v for k, v in task.items() if k not in GROUPS}
+    for group in GROUPS:
+        out.update(task[group])
+    out["tracks"] = out.pop("generator")
+    return out
+
+
+def test_a_format_2_file_with_the_flat_task_loads_grouped():
+    d = json.loads(json.dumps(sp.to_dict(tiny())))
+    two = {**d, "format": 2, "task": flat_task(d["task"])}
+    assert len(two["task"]) == 40 and sp.from_dict(two) == tiny()
+    two["task"]["wind_sigma"], two["task"]["tracks"]["los_climb_rate"] = 0.3, 0.2
+    task = sp.from_dict(two).task
+    assert task.disturbances.wind_sigma == 0.3 and task.tracks.generator.los_climb_rate == 0.2
+    with pytest.raises(ValueError, match='"task.reward.e_max" is missing'):
+        sp.from_dict({**two, "task": {k: v for k, v in two["task"].items() if k != "e_max"}})
+    with pytest.raises(ValueError, match="wind_sigmaa"):  # an unknown flat field is named
+        sp.from_dict({**two, "task": {**two["task"], "wind_sigmaa": 0.1}})
+    with pytest.raises(ValueError, match='"task.vehicle", "task.observation"'):
+        sp.from_dict({**d, "task": flat_task(d["task"])})  # a flat task in a format-3 file is refused
+
+
 def test_the_migration_knows_only_the_fields_added_later():
     d = json.loads(json.dumps(sp.to_dict(tiny())))
+    d = {**d, "format": 2, "task": flat_task(d["task"])}  # formats 0-2: the task flat
     legacy = {k: v for k, v in d.items() if k != "format"}
     legacy["train"] = {k: v for k, v in d["train"].items() if k != "critic_arch"}
     legacy["task"] = {k: v for k, v in d["task"].items() if k not in ("obs_memory", "train_tracks")}
     assert sp.from_dict(legacy) == tiny()  # format 0: filled with their history
     with pytest.raises(
-        ValueError, match='"train.critic_arch", "task.obs_memory", "task.train_tracks" are missing'
+        ValueError,
+        match='"train.critic_arch", "task.observation.obs_memory", "task.tracks.train_tracks" are missing',
     ):
         sp.from_dict({**legacy, "format": 1})  # format 1 files hold every field but n_step
     one = {**d, "format": 1, "train": {k: v for k, v in d["train"].items() if k != "n_step"}}
     assert sp.from_dict(one) == tiny()  # n_step came with format 2: a format-1 file gets 1
     with pytest.raises(ValueError, match='"train.n_step" is missing'):
-        sp.from_dict({**one, "format": sp.CONFIG_FORMAT})
+        sp.from_dict({**one, "format": 2})
     legacy["task"].pop("lookahead_k")
-    with pytest.raises(ValueError, match='field "task.lookahead_k" is missing'):
+    with pytest.raises(ValueError, match='field "task.observation.lookahead_k" is missing'):
         sp.from_dict(legacy)  # no history: refused
     with pytest.raises(ValueError, match="format 7 is not one this version reads"):
         sp.from_dict({**d, "format": 7})
+    assert sp.CONFIG_FORMAT == 3
 
 
 def test_every_committed_run_spec_loads():
@@ -167,6 +198,12 @@ def test_every_committed_run_spec_loads():
     assert len(found) >= 8
     for path in found:
         assert runs.load_spec(os.path.dirname(path)).train.epochs >= 1, path
+    with open(found[0]) as fh:  # committed files hold the flat task (format 0): grouped on load
+        saved = json.load(fh)
+    assert saved.get("format", 0) < 3 and "e_max" in saved["task"]
+    task = runs.load_spec(os.path.dirname(found[0])).task
+    now = flat_task(json.loads(json.dumps(sp.to_dict(sp.RunSpec(task=task))))["task"])
+    assert {k: now[k] for k in saved["task"]} == saved["task"]  # every saved value, in its group
 
 
 def test_help_puts_each_option_under_its_own_text(capsys):

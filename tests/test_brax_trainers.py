@@ -118,7 +118,7 @@ def test_device_put_replicated_shards_one_copy_per_device():
 
 def test_the_env_is_registered_with_brax():
     env = brax_envs.get_environment(brax_compat.ENV_NAME, preset="practical", e_max=0.5)
-    assert isinstance(env, TrackingEnv) and env.config.e_max == 0.5 and env.config.action_repeat == 10
+    assert isinstance(env, TrackingEnv) and env.config.reward.e_max == 0.5 and env.config.action_repeat == 10
     assert brax_envs.get_environment(brax_compat.ENV_NAME, config=CFG).config == CFG
     batched = brax_envs.create(
         brax_compat.ENV_NAME, episode_length=CFG.episode_length, batch_size=2, config=CFG

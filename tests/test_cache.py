@@ -149,7 +149,7 @@ def test_a_training_csv_edited_in_place_is_traced_again_and_trains_on_its_new_co
     csv = tmp_path / "track.csv"
     _track_csv(csv, 1.0)
     spec = tiny()
-    spec = dataclasses.replace(spec, task=dataclasses.replace(spec.task, train_tracks=(str(csv),),
+    spec = dataclasses.replace(spec, task=spec.task.replace(train_tracks=(str(csv),),
                                                               train_tracks_weight=1.0))  # fmt: skip
     compile_ = lambda f, *x: f.lower(*x).compile()  # noqa: E731
 

@@ -31,12 +31,12 @@ from ttd3_jax.train import main
         ),
         (["--hp.lam", "inf"], "hp.lam must be a finite number"),
         (["--hp.beta", "nan"], "hp.beta must be a finite number"),
-        (["--task.e-max", "-1"], "EnvConfig.e_max must be a finite number > 0"),
-        (["--task.obs-frame", "heading"], "obs_frame must be one of"),
-        (["--task.track", "spiral_rt"], "task.track must be 'train'"),
-        (["--task.los-seed", "3"], "task.los_seed 0"),
+        (["--task.reward.e-max", "-1"], "EnvConfig.reward.e_max must be a finite number > 0"),
+        (["--task.observation.obs-frame", "heading"], "obs_frame must be one of"),
+        (["--task.tracks.track", "spiral_rt"], "task.tracks.track must be 'train'"),
+        (["--task.tracks.los-seed", "3"], "task.tracks.los_seed 0"),
         (
-            ["--preset", "mujoco", "--task.e-max", "1.5"],
+            ["--preset", "mujoco", "--task.reward.e-max", "1.5"],
             r"--task.\* sets the quadrotor env; env 'hopper' has none",
         ),
         (
@@ -72,10 +72,10 @@ def test_out_that_is_a_file_is_refused(tmp_path, capsys):
 
 def test_task_e_max_big_is_refused_with_the_field_and_its_type(capsys):
     with pytest.raises(SystemExit) as exc:
-        main(["--task.e-max", "big"])
+        main(["--task.reward.e-max", "big"])
     assert exc.value.code == 2
     err = capsys.readouterr().err
-    assert "--task.e-max" in err and "FLOAT" in err.upper()
+    assert "--task.reward.e-max" in err and "FLOAT" in err.upper()
 
 
 def test_sigkill_then_resume_finishes_the_run(tmp_path):

@@ -139,7 +139,7 @@ def test_step_overshoot_and_steady_error():
 
 def test_every_controller_is_judged_by_one_crash_threshold():
     for cfg in (make_config("paper"), make_config("practical", e_max=1.5)):
-        assert cfg.for_eval("los_rt").e_max == EVAL_CRASH_M
+        assert cfg.for_eval("los_rt").reward.e_max == EVAL_CRASH_M
 
 
 def test_cli_evaluates_a_csv_track_at_its_own_length(tmp_path, capsys):
@@ -196,7 +196,7 @@ def test_train_cli_takes_a_directory_of_tracks(tmp_path):
     for name in ("a", "b"):
         ct.to_csv(ct.step((0.1, 0.0, 0.0), 0.5, name=name), str(tmp_path / f"{name}.csv"))
     _, spec = parse(["--train-tracks", str(tmp_path), "--out", str(tmp_path / "runs")])
-    assert spec.task.train_tracks == (str(tmp_path / "a.csv"), str(tmp_path / "b.csv"))
+    assert spec.task.tracks.train_tracks == (str(tmp_path / "a.csv"), str(tmp_path / "b.csv"))
     (tmp_path / "c.csv").write_text("t,x\n")
     with pytest.raises(ValueError, match="c.csv"):
         parse(["--train-tracks", str(tmp_path)])

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import jax
@@ -276,8 +275,10 @@ def test_wind_and_observation_noise_are_seeded():
 
 def test_practical_preset_repeats_actions():
     cfg = make_config("practical")
-    assert cfg.action_repeat == 10 and cfg.lookahead_k == 50 and cfg.obs_frame == "track"
-    assert cfg.e_max == 1.0 and cfg.crash_cost == pytest.approx(1000)  # r_e(1)·10/(1-0.99)
+    assert (
+        cfg.action_repeat == 10 and cfg.observation.lookahead_k == 50 and cfg.observation.obs_frame == "track"
+    )
+    assert cfg.reward.e_max == 1.0 and cfg.crash_cost == pytest.approx(1000)  # r_e(1)·10/(1-0.99)
     assert make_config("practical", e_max=2.0).crash_cost == pytest.approx(4000)
     env = TrackingEnv(cfg.for_eval("spiral_rt"))
     assert env.episode_length == 300 and env.dt == pytest.approx(0.01)
@@ -326,14 +327,14 @@ def test_geometric_controller_tracks_both_test_tracks():
 )
 def test_config_validation(kwargs, match):
     with pytest.raises(ValueError, match=match):
-        EnvConfig(**kwargs)
+        EnvConfig().replace(**kwargs)
 
 
 def test_preset_and_quad_validation():
     with pytest.raises(ValueError, match="unknown env preset 'fast'.*paper"):
         make_config("fast")
     with pytest.raises(ValueError, match="mass"):
-        EnvConfig(quad=QuadParams(mass=-1.0))
+        EnvConfig().replace(quad=QuadParams(mass=-1.0))
     with pytest.raises(ValueError, match="rate_model"):
         TrackingEnv(make_config(), quad=QuadParams(rate_model="magic"))
     with pytest.raises(ValueError, match="thrust_min"):
@@ -361,7 +362,7 @@ def test_grad_of_return_through_env():
 
 def test_replace_keeps_validation():
     with pytest.raises(ValueError, match="rho1"):
-        dataclasses.replace(make_config(), rho1=0.0)
+        make_config().replace(rho1=0.0)
 
 
 def test_los_rt_env_with_a_short_episode():
@@ -382,7 +383,7 @@ def test_track_frame_observation_is_translation_invariant():
     o1, _ = env.observe(ps)
     o2, _ = env.observe(moved)
     np.testing.assert_allclose(o1, o2, atol=1e-5)
-    ow, _ = TrackingEnv(dataclasses.replace(cfg, obs_frame="world")).observe(ps)
+    ow, _ = TrackingEnv(cfg.replace(obs_frame="world")).observe(ps)
     p_d = tr.position(ps.track, ps.k, cfg.dt)
     np.testing.assert_allclose(o1[0:3], ow[0:3] - p_d, atol=1e-6)  # p - p_d,k
     np.testing.assert_allclose(o1[10:13], ow[10:13] - p_d, atol=1e-6)  # p_d,k+L - p_d,k

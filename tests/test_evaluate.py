@@ -4,7 +4,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import importlib.util
 import json
 import math
@@ -42,7 +41,7 @@ def fake_run_dir(path) -> str:
     of compiling a real run: the state is zeros except for freshly initialised actor and
     critic weights (``init_params`` with key 3)."""
     base = tiny()
-    s = sp.replace(base, task=dataclasses.replace(base.task, obs_frame="world"))
+    s = sp.replace(base, task=base.task.replace(obs_frame="world"))
     trainer = sp.trainer_for(s)
     like = jax.eval_shape(
         per_seed(trainer.init, s.num_seeds, (0, None)), seed_keys(s.seed, s.num_seeds), s.hp
@@ -66,7 +65,7 @@ def check_evaluation_json(run_dir: str, epoch: int, obs_frame: str = "track") ->
     assert out["epoch"] == epoch
     assert out["env_config"] == task  # the run's whole env config (the practical preset's) ...
     assert out["env_config"]["action_repeat"] == 10  # ... not the paper preset
-    assert out["env_config"]["obs_frame"] == obs_frame  # with the run's changes to the preset
+    assert out["env_config"]["observation"]["obs_frame"] == obs_frame  # with the run's changes to the preset
     res = out["results"]["seed 0"]
     assert set(res) == {"spiral_rt", "los_rt"}
     for m in res.values():
@@ -105,9 +104,9 @@ def test_cli_evaluates_a_saved_checkpoint(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main([run_dir, "--controller", "nmpc"])
     with pytest.raises(SystemExit):
-        main([run_dir, "--task.e-max", "1"])  # a run keeps the env it trained in
-    for bad in (["--task.wind-sigma", "1"], ["--task.track", "los_rt"], ["--task.action-repeat", "0"],
-                ["--task.mass", "2"]):  # fmt: skip
+        main([run_dir, "--task.reward.e-max", "1"])  # a run keeps the env it trained in
+    for bad in (["--task.disturbances.wind-sigma", "1"], ["--task.tracks.track", "los_rt"],
+                ["--task.action-repeat", "0"], ["--task.mass", "2"]):  # fmt: skip
         with pytest.raises(SystemExit):
             main(["--controller", "hover", *bad])
     err = flat(capsys.readouterr().err)
@@ -122,10 +121,13 @@ def test_cli_trace_csv_holds_the_rollout_behind_the_metrics(tmp_path):
     per physics step, whose errors are the positions' distances and sum to Σ‖e‖."""
     out = tmp_path / "geometric.json"
     args = ["--controller", "geometric", "--track", "spiral_rt", "--no-timing", "--json", str(out)]
-    assert main([*args, "--task.quad.mass", "1.8"]) == 0  # a heavier vehicle
+    assert main([*args, "--task.vehicle.quad.mass", "1.8"]) == 0  # a heavier vehicle
     with open(out) as fh:
         saved = json.load(fh)
-    assert saved["env_config"]["quad"]["mass"] == 1.8 and saved["task_args"] == ["--task.quad.mass", "1.8"]
+    assert saved["env_config"]["vehicle"]["quad"]["mass"] == 1.8 and saved["task_args"] == [
+        "--task.vehicle.quad.mass",
+        "1.8",
+    ]
     res = saved["results"]["geometric"]["spiral_rt"]
     rows = read_trace(str(tmp_path / "spiral_rt_trace.csv"))
     assert not (tmp_path / "los_rt_trace.csv").exists()
@@ -214,18 +216,18 @@ def test_action_delay_applies_the_previous_action():
     np.testing.assert_allclose(r.action, np.broadcast_to(hover, r.action.shape), atol=1e-7)
     for bad in (2, -1, True, 0.5):
         with pytest.raises(ValueError, match="action_delay"):
-            EnvConfig(action_delay=bad)
+            EnvConfig().replace(action_delay=bad)
     with pytest.raises(ValueError, match="thrust_map_mass"):
-        EnvConfig(thrust_map_mass=0.0)
+        EnvConfig().replace(thrust_map_mass=0.0)
 
 
 def test_mass_mismatch_is_unknown_to_the_controller():
     # the hover-centred map (a0 = 0 is hover thrust) would leak the mass if it used the true mass
     cfg = make_config("practical", episode_steps=500, hover_centered_thrust=True)
     conds = robustness_conditions(cfg)
-    assert conds["mass+20"].quad.mass == pytest.approx(1.8)
-    assert conds["mass-20"].quad.mass == pytest.approx(1.2)
-    assert conds["nominal"].quad.mass == 1.5 and conds["nominal"].wind_sigma == 0.0
+    assert conds["mass+20"].vehicle.quad.mass == pytest.approx(1.8)
+    assert conds["mass-20"].vehicle.quad.mass == pytest.approx(1.2)
+    assert conds["nominal"].vehicle.quad.mass == 1.5 and conds["nominal"].disturbances.wind_sigma == 0.0
     for name in ("mass+20", "mass-20"):  # the nominal hover action is the same in every condition
         np.testing.assert_allclose(hover_action(conds[name]), hover_action(conds["nominal"]))
     ctrl = hover_controller(conds["nominal"])  # the controller knows only the nominal config
@@ -248,7 +250,7 @@ def test_sensed_controller_on_the_track_frame_equals_the_true_state_controller()
     observation (positions shifted back by p_d,k, q possibly negated), the geometric
     controller flies the same closed loop as on the true state."""
     env = TrackingEnv(make_config("practical").for_eval("los_rt"))
-    assert env.config.obs_frame == "track"
+    assert env.config.observation.obs_frame == "track"
     geo = geometric_controller(env.config)
     tracks = make_test_tracks(env)
     run_ = jax.jit(lambda c: evaluate_on_tracks(env, c, tracks)["tracking_error"], static_argnums=0)

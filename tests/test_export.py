@@ -102,15 +102,19 @@ def test_the_sidecar_says_what_the_policy_reads_and_writes(exported):
     cfg = runs.load_spec(run_dir).task
     assert len(meta["observation"]) == meta["obs_size"] == TrackingEnv(cfg).observation_size == 17
     assert meta["control_hz"] == pytest.approx(1 / cfg.control_dt)
-    assert meta["vehicle"]["mass"] == cfg.quad.mass
+    assert meta["vehicle"]["mass"] == cfg.vehicle.quad.mass
     assert meta["source"]["run"] == os.path.basename(run_dir) and meta["source"]["epoch"] == 2
     thrust = meta["action_map"]["thrust_N"]
     assert thrust["min"] < thrust["hover"] < thrust["max"]
     obs = meta["observation_spec"]
-    assert obs["lookahead_physics_steps"] == cfg.lookahead_k and obs["names"] == meta["observation"]
-    assert ("track" in obs["frame"]) == (cfg.obs_frame == "track") and "qw >= 0" in obs["quaternion_sign"]
+    assert (
+        obs["lookahead_physics_steps"] == cfg.observation.lookahead_k and obs["names"] == meta["observation"]
+    )
+    assert ("track" in obs["frame"]) == (cfg.observation.obs_frame == "track") and "qw >= 0" in obs[
+        "quaternion_sign"
+    ]
     assert "scalar first" in meta["conventions"]["attitude"] and "z up" in meta["conventions"]["world_frame"]
-    assert meta["rate_model"]["name"] == cfg.quad.rate_model
+    assert meta["rate_model"]["name"] == cfg.vehicle.quad.rate_model
     assert meta["evaluation_protocol"]["physics_steps"] == cfg.episode_steps
     assert meta["action_repeat"] == cfg.action_repeat
     assert "Threefry" in meta["test_tracks"] and "experiments/tracks/protocol" in meta["test_tracks"]

@@ -3,7 +3,6 @@ and privileged tail, the log error cost, the actor's input slice and the residua
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import jax
@@ -34,13 +33,15 @@ def test_memory_observes_last_action_and_leaky_error_integral():
     cfg = make_config("practical", obs_memory=True, memory_tau=0.5)
     env, s0, s1, s2 = _two_steps(cfg)
     assert env.observation_size == env.actor_observation_size == 24
-    np.testing.assert_array_equal(s0.obs[17:], np.zeros(7))
-    np.testing.assert_allclose(s2.obs[17:21], A2, atol=1e-7)
+    lay = env.layout
+    np.testing.assert_array_equal(s0.obs[lay.actor_size - 7 :], np.zeros(7))
+    np.testing.assert_allclose(s2.obs[lay.slice("last_action")], A2, atol=1e-7)
     dt, leak = cfg.control_dt, math.exp(-cfg.control_dt / 0.5)
     e = lambda s: tr.position(s.pipeline_state.track, s.pipeline_state.k, cfg.dt) - s.pipeline_state.quad.p  # noqa: E731
-    np.testing.assert_allclose(s2.obs[21:24], leak * dt * e(s1) + dt * e(s2), rtol=1e-5, atol=1e-8)
+    want = leak * dt * e(s1) + dt * e(s2)
+    np.testing.assert_allclose(s2.obs[lay.slice("error_integral")], want, rtol=1e-5, atol=1e-8)
     plain = _two_steps(make_config("practical", memory_tau=0.5))[3]
-    np.testing.assert_array_equal(s2.obs[:17], plain.obs)  # the first 17 are the paper's
+    np.testing.assert_array_equal(s2.obs[: plain.obs.shape[0]], plain.obs)  # the paper's parts first
 
 
 def test_privileged_tail_is_wind_and_the_reference_ahead():
@@ -48,11 +49,12 @@ def test_privileged_tail_is_wind_and_the_reference_ahead():
     env, _, _, s2 = _two_steps(cfg)
     assert (env.observation_size, env.actor_observation_size) == (26, 17)
     ps = s2.pipeline_state
-    np.testing.assert_allclose(s2.obs[17:20], ps.wind, rtol=1e-6)
-    ahead = ps.k + cfg.lookahead_k
-    for i, t in enumerate((0.5, 1.0)):
+    assert env.layout.critic_only == ("wind", "p_ahead_0.5s", "p_ahead_1s")
+    np.testing.assert_allclose(s2.obs[env.layout.slice("wind")], ps.wind, rtol=1e-6)
+    ahead = ps.k + cfg.observation.lookahead_k
+    for t in (0.5, 1.0):
         want = tr.position(ps.track, ahead + round(t / cfg.dt), cfg.dt) - tr.position(ps.track, ahead, cfg.dt)
-        np.testing.assert_allclose(s2.obs[20 + 3 * i : 23 + 3 * i], want, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(s2.obs[env.layout.slice(f"p_ahead_{t:g}s")], want, rtol=1e-5, atol=1e-6)
     # the track table covers the extra second of look-ahead
     assert cfg.horizon_steps == make_config("practical").horizon_steps + 1000
 
@@ -69,13 +71,13 @@ def test_log_error_cost_and_its_crash_cost():
     [
         (dict(err_scale=0.0), "err_scale"),
         (dict(memory_tau=-1.0), "memory_tau"),
-        (dict(obs_memory=True, action_delay=1), "obs_memory needs action_delay 0"),
+        (dict(obs_memory=True, action_delay=1), "obs_memory needs disturbances.action_delay 0"),
         (dict(obs_privileged=1), "obs_privileged"),
     ],
 )
 def test_option_validation(kwargs, match):
     with pytest.raises(ValueError, match=match):
-        EnvConfig(**kwargs)
+        EnvConfig().replace(**kwargs)
     with pytest.raises(ValueError, match="critic_arch must be one of"):
         TrainConfig(critic_arch="transformer")
 
@@ -94,7 +96,7 @@ def test_actor_reads_only_its_slice_and_residual_critic_shapes():
 
 def test_one_epoch_with_every_option_trains_and_stays_finite():
     s = tiny(critic_arch="residual", n_step=3)
-    s = sp.replace(s, task=dataclasses.replace(s.task, obs_memory=True, obs_privileged=True, err_cost="log"))
+    s = sp.replace(s, task=s.task.replace(obs_memory=True, obs_privileged=True, err_cost="log"))
     t = sp.trainer_for(s)
     assert (t.env.obs_size, t.env.actor_obs_size) == (33, 24)
     ts = jax.jit(t.init)(seed_keys(0, 1)[0], s.hp)

@@ -112,7 +112,7 @@ def test_single_solve_decreases_cost_and_respects_bounds():
     assert float(c1) < float(c0)  # one Gauss-Newton step (from the warm start U_ref)
     assert float(c10) <= float(c1)
     np.testing.assert_allclose(float(c1), float(c1_true), rtol=1e-5)
-    q = env.config.quad
+    q = env.config.vehicle.quad
     for U in (np.asarray(U1), np.asarray(U10)):
         assert U.shape == (5, 4)
         assert np.all(U[:, 0] >= q.thrust_min - 1e-5) and np.all(U[:, 0] <= q.thrust_max + 1e-5)

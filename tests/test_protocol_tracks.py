@@ -34,7 +34,7 @@ def test_a_presets_evaluation_flies_the_committed_reference(preset, track, seed)
     """Each preset's evaluation env reads p_d(k) from the file, look-ahead included."""
     c = sp.preset(preset).task.for_eval(track, los_seed=seed)
     env = TrackingEnv(c)
-    ks = jnp.arange(c.episode_steps + c.lookahead_k + 1)
+    ks = jnp.arange(c.episode_steps + c.observation.lookahead_k + 1)
     want = np.asarray(jax.vmap(lambda k: tr.position(env.sample_track(None), k, c.dt))(ks))
     name = "spiral_rt" if track == "spiral_rt" else f"los_rt_seed{seed:02d}"
     got = pt.read_csv(os.path.join(pt.OUT, f"{name}.csv"))[1][: len(ks)]

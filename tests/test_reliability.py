@@ -139,7 +139,7 @@ def test_resume_of_a_finished_run_does_nothing(tmp_path):
     "argv, field",
     [
         (["--hidden", "65536", "65536"], "--hidden 65536 65536"),
-        (["--task.lookahead-k", "1000000000"], "--task.lookahead-k 1000000000"),
+        (["--task.observation.lookahead-k", "1000000000"], "--task.observation.lookahead-k 1000000000"),
         (["--task.episode-steps", "2000000000"], "--task.episode-steps 2000000000"),
         (["--updates-per-step", "1000000000"], "--updates-per-step 1000000000"),
     ],

@@ -96,7 +96,9 @@ def test_damaged_config_json_is_named(tmp_path):
     with pytest.raises(ValueError, match=r"config.json is not valid JSON .*damaged"):
         runs.load_spec(part)
     open(path, "w").write(text.replace('"e_max": 1.0', '"e_max": "big"'))
-    with pytest.raises(ValueError, match=r'config.json: run spec: wrong value type for field "task.e_max"'):
+    with pytest.raises(
+        ValueError, match=r'config.json: run spec: wrong value type for field "task.reward.e_max"'
+    ):
         runs.load_spec(part)
     with pytest.raises(FileNotFoundError, match="not a ttd3_jax run directory"):
         runs.load_spec(str(tmp_path))

@@ -84,7 +84,7 @@ def test_preset_changes_route_to_the_train_config_or_the_spec():
         (dict(env="cartpole3d"), "env must be 'quadrotor' or one of"),
         (dict(seed=-1), "seed must be an integer >= 0"),
         (dict(num_seeds=0), "num_seeds must be an integer >= 1"),
-        (dict(task=make_config("practical", track="spiral_rt")), "task.track must be 'train'"),
+        (dict(task=make_config("practical", track="spiral_rt")), "task.tracks.track must be 'train'"),
         (dict(task={"e_max": 1.0}), "task must be a EnvConfig"),
     ],
 )
@@ -103,8 +103,8 @@ def test_brax_settings_errors():
 @pytest.mark.parametrize(
     "fields, match",
     [
-        (dict(e_max="big"), r"EnvConfig.e_max must be a finite number > 0, got 'big'"),
-        (dict(e_max=-1.0), r"EnvConfig.e_max must be a finite number > 0, got -1.0"),
+        (dict(e_max="big"), r"EnvConfig.reward.e_max must be a finite number > 0, got 'big'"),
+        (dict(e_max=-1.0), r"EnvConfig.reward.e_max must be a finite number > 0, got -1.0"),
         (dict(obs_frame="heading"), r"obs_frame must be one of \('world', 'track'\)"),
         (dict(crash_penalty=-1.0), r"crash_penalty must be a finite number >= 0 or None, got -1.0"),
         (dict(terminate="no"), "terminate must be true or false"),
@@ -114,7 +114,7 @@ def test_brax_settings_errors():
 )
 def test_env_config_errors_name_the_field(fields, match):
     with pytest.raises(ValueError, match=match):
-        EnvConfig(**fields)
+        EnvConfig().replace(**fields)
 
 
 def test_crash_cost_follows_e_max_unless_set():
@@ -141,10 +141,10 @@ def test_config_json_round_trip_keeps_every_field():
     [
         (lambda d: d["train"].update(n_quantiles=3), 'can not match "n_quantiles" to any data class field'),
         (
-            lambda d: d["task"].update(e_max="big"),
-            'field "task.e_max" - should be "float" instead of value "big"',
+            lambda d: d["task"]["reward"].update(e_max="big"),
+            'field "task.reward.e_max" - should be "float" instead of value "big"',
         ),
-        (lambda d: d["task"]["quad"].update(mass=-1), "QuadParams.mass must be > 0"),
+        (lambda d: d["task"]["vehicle"]["quad"].update(mass=-1), "QuadParams.mass must be > 0"),
         (lambda d: d.update(hp=[1, 2]), 'field "hp" - should be "Hyper"'),
         (lambda d: d.update(colour="red"), 'can not match "colour"'),
     ],

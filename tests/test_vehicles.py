@@ -4,7 +4,6 @@ on both CLIs (and its refusals), and the vehicle's round trip through ``config.j
 
 from __future__ import annotations
 
-import dataclasses
 import re
 
 import jax
@@ -25,7 +24,7 @@ from ttd3_jax.sim.env import TrackingEnv, action_to_control, hover_action
 
 
 def test_presets_paper_is_the_default_and_crazyflie_has_its_sources():
-    assert vh.vehicle("paper") == QuadParams() == make_config("paper").quad
+    assert vh.vehicle("paper") == QuadParams() == make_config("paper").vehicle.quad
     cf = vh.vehicle("crazyflie")
     assert cf.mass == 0.027 and cf.thrust_max == pytest.approx(4 * 0.1302)
     assert cf.inertia == (1.029e-5, 1.105e-5, 2.005e-5)
@@ -48,7 +47,7 @@ def _fly(cfg, a: jax.Array, steps: int = 1000) -> QuadState:
     u = action_to_control(cfg, a)
 
     def step(x, _):
-        return rk4_step(cfg.quad, x, u, cfg.dt), None
+        return rk4_step(cfg.vehicle.quad, x, u, cfg.dt), None
 
     return jax.lax.scan(step, QuadState.hover(), None, length=steps)[0]
 
@@ -79,7 +78,7 @@ def test_geometric_controller_tracks_spiral_rt_on_the_crazyflie():
     assert float(m["max_error"]) < 0.1, float(m["max_error"])  # m
     # it flew the Crazyflie: the commanded thrust stays near its 0.26 N hover, inside 0-0.52 N
     thrust = np.asarray(action_to_control(cfg, r.action)[..., 0])
-    assert 0.15 < float(np.median(thrust)) < 0.4 and thrust.max() <= cfg.quad.thrust_max + 1e-6
+    assert 0.15 < float(np.median(thrust)) < 0.4 and thrust.max() <= cfg.vehicle.quad.thrust_max + 1e-6
 
 
 def _code(fn, argv) -> int:
@@ -104,13 +103,15 @@ def test_train_refuses_bad_vehicle_flags(argv, message, capsys):
 
 
 def test_train_vehicle_round_trips_through_config_json(tmp_path):
-    known, spec = train.parse(["--vehicle", "crazyflie", "--task.quad.rate-model", "torque"])
-    assert spec.task.quad == vh.CRAZYFLIE.replace(rate_model="torque")  # --task.quad.* on top
-    assert spec.task.hover_centered_thrust  # the fast preset's other task fields are kept
+    known, spec = train.parse(["--vehicle", "crazyflie", "--task.vehicle.quad.rate-model", "torque"])
+    assert spec.task.vehicle.quad == vh.CRAZYFLIE.replace(rate_model="torque")  # --task.vehicle.quad.* on top
+    assert spec.task.vehicle.hover_centered_thrust  # the fast preset's other task fields are kept
     back = runs.load_spec(runs.new_run_dir(str(tmp_path), spec))
-    assert back == spec and back.task.quad.inertia == vh.CRAZYFLIE.inertia
+    assert back == spec and back.task.vehicle.quad.inertia == vh.CRAZYFLIE.inertia
     _, plain = train.parse(["--vehicle", "crazyflie"])
-    assert vh.vehicle_of(runs.load_spec(runs.new_run_dir(str(tmp_path), plain)).task.quad) == "crazyflie"
+    assert (
+        vh.vehicle_of(runs.load_spec(runs.new_run_dir(str(tmp_path), plain)).task.vehicle.quad) == "crazyflie"
+    )
 
 
 def test_evaluate_vehicle_with_run_dir_only_if_it_is_the_runs_own(tmp_path, capsys):
@@ -127,8 +128,6 @@ def test_evaluate_vehicle_with_run_dir_only_if_it_is_the_runs_own(tmp_path, caps
 
 
 def test_evaluate_classical_env_flies_the_vehicle_with_task_flags_on_top():
-    cfg = classical_env("practical", ["--task.quad.mass", "0.03"], "crazyflie")
-    assert cfg.quad == vh.CRAZYFLIE.replace(mass=0.03) and cfg.action_repeat == 10
-    assert dataclasses.replace(classical_env("paper", [], "crazyflie"), quad=QuadParams()) == make_config(
-        "paper"
-    )
+    cfg = classical_env("practical", ["--task.vehicle.quad.mass", "0.03"], "crazyflie")
+    assert cfg.vehicle.quad == vh.CRAZYFLIE.replace(mass=0.03) and cfg.action_repeat == 10
+    assert classical_env("paper", [], "crazyflie").replace(quad=QuadParams()) == make_config("paper")

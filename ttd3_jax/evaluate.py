@@ -4,7 +4,7 @@ suite: the table, run times, optional robustness, JSON, plots and trace CSVs.
 
     python -m ttd3_jax.evaluate --controller geometric        # Spiral-RT and LOS-RT seed 0
     python -m ttd3_jax.evaluate --controller nmpc --nmpc-solve-every 10
-    python -m ttd3_jax.evaluate --controller geometric --task.quad.mass 1.8   # any EnvConfig field
+    python -m ttd3_jax.evaluate --controller geometric --task.vehicle.quad.mass 1.8   # any EnvConfig field
     python -m ttd3_jax.evaluate --controller nmpc --vehicle crazyflie     # a named vehicle (sim.vehicles)
     python -m ttd3_jax.evaluate RUN_DIR [--epoch E | --best] [--seed-index I] [--robustness]
     python -m ttd3_jax.evaluate RUN_DIR --track my_track.csv      # header t,x,y,z[,vx,vy,vz,ax,ay,az]
@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate a trained policy (RUN_DIR) or a classical controller (--controller) in closed "
         "loop on Spiral-RT and LOS-RT: tracking metrics, run times, optional robustness, JSON and plots. "
         "--task.FIELD VALUE sets a field of --controller's env (and of its model) on top of --preset, as in "
-        "python -m ttd3_jax.train (e.g. --task.action-repeat 5 --task.quad.mass 1.8); the fields the "
+        "python -m ttd3_jax.train (e.g. --task.action-repeat 5 --task.vehicle.quad.mass 1.8); the fields the "
         "evaluation protocol sets are refused.",
     )
     add = ap.add_argument
@@ -63,7 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
     add("--seed-index", type=int, default=None, help="only this seed of RUN_DIR (default: all)")
     add("--preset", default=None, choices=PRESETS, help="env preset of --controller (default paper)")
     add("--vehicle", default=None, choices=VEHICLE_NAMES, help="vehicle of --controller's env (default "
-        "paper; --task.quad.* on top); with RUN_DIR only the run's own vehicle is accepted")  # fmt: skip
+        "paper; --task.vehicle.quad.* on top); with RUN_DIR only the run's own vehicle")  # fmt: skip
     add(
         "--track",
         default="all",
@@ -158,7 +158,7 @@ def check_run_vehicle(ap: argparse.ArgumentParser, args) -> None:
     if args.vehicle is None:
         return
     try:
-        own = vehicle_of(runs.load_spec(args.run_dir).task.quad)
+        own = vehicle_of(runs.load_spec(args.run_dir).task.vehicle.quad)
     except (FileNotFoundError, ValueError) as e:
         ap.error(str(e))
     if own != args.vehicle:
@@ -174,10 +174,11 @@ def classical_env(preset: str, task_args: list[str], vehicle: str | None = None)
     default = default if vehicle is None else with_vehicle(default, vehicle)
     refuse_bool_values(task_args, bool_flags(_Task))
     cfg = tyro.cli(_Task, default=_Task(default), args=task_args, prog="python -m ttd3_jax.evaluate").task
-    protocol = [f for f in EVAL_PROTOCOL_FIELDS if getattr(cfg, f) != getattr(default, f)]
+    protocol = [f for f in EVAL_PROTOCOL_FIELDS if cfg.get(f) != default.get(f)]
     if protocol:
+        flag = "--task." + EnvConfig.path(protocol[0]).replace("_", "-")
         raise ValueError(
-            f"--task.{protocol[0].replace('_', '-')} is set by the evaluation protocol (--track, --los-seed; "
+            f"{flag} is set by the evaluation protocol (--track, --los-seed; "
             "--robustness for wind and noise; 3000 steps per episode)"
         )
     return cfg
@@ -193,9 +194,9 @@ def policies(args) -> tuple:
     thetas = run.thetas if args.seed_index is None else [run.thetas[args.seed_index]]
     s = run.spec
     which = f"selected on the validation tracks, epochs {run.epoch}" if args.best else f"epoch {run.epoch}"
-    own = vehicle_of(s.task.quad) or "custom"
+    own = vehicle_of(s.task.vehicle.quad) or "custom"
     print(f"run {args.run_dir} {which} ({s.algo}, vehicle {own}, hover_centered_thrust="
-          f"{s.task.hover_centered_thrust})")  # fmt: skip
+          f"{s.task.vehicle.hover_centered_thrust})")  # fmt: skip
     header = dict(run_dir=args.run_dir, epoch=run.epoch, algo=s.algo, vehicle=own)
     return run.env_config, run.build, {f"seed {seed}": theta for seed, theta in thetas}, header
 
@@ -241,7 +242,7 @@ def evaluator_for(args, cfg: EnvConfig, build, sequential: bool) -> tuple[Evalua
         if steps < cfg.action_repeat:
             raise ValueError(f"--track {args.track}: {c.duration_s:g} s is shorter than one control step "
                              f"({cfg.control_dt:g} s)")  # fmt: skip
-        eval_cfg = dataclasses.replace(eval_cfg, episode_steps=steps)
+        eval_cfg = eval_cfg.replace(episode_steps=steps)
         tracks = {c.name: c.track()}
         print(f"track {c.name}: {c.duration_s:g} s ({steps} physics steps evaluated); after its last sample "
               "the reference holds the last point")  # fmt: skip

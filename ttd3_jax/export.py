@@ -75,8 +75,9 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     cfg = run.env_config
-    if cfg.obs_memory or cfg.obs_privileged:
-        print(f"error: {run_dir} observes obs_memory={cfg.obs_memory}, obs_privileged={cfg.obs_privileged}; "
+    o = cfg.observation
+    if o.obs_memory or o.obs_privileged:
+        print(f"error: {run_dir} observes obs_memory={o.obs_memory}, obs_privileged={o.obs_privileged}; "
               "export supports the stateless observation only (both false)", file=sys.stderr)  # fmt: skip
         return 2
     seed, (actor, stats) = run.thetas[args.seed_index]

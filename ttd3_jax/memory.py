@@ -79,8 +79,14 @@ def needs(spec: sp.RunSpec, obs_size: int, action_size: int) -> list[Need]:
              "updates_per_step", c.updates_per_step),
     ]  # fmt: skip
     if spec.is_quadrotor:
-        name = "task.lookahead_k" if t.lookahead_k > t.episode_steps else "task.episode_steps"
-        out.append(Need("the track tables", track_bytes(spec), name, max(t.lookahead_k, t.episode_steps)))
+        name = (
+            "task.observation.lookahead_k"
+            if t.observation.lookahead_k > t.episode_steps
+            else "task.episode_steps"
+        )
+        out.append(
+            Need("the track tables", track_bytes(spec), name, max(t.observation.lookahead_k, t.episode_steps))
+        )
         rollout = (
             c.model_horizon * c.num_envs * (ROLLOUT_STATE_BYTES + transition_bytes(obs_size, action_size))
         )

@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ttd3_jax import runs
+from ttd3_jax.sim import observation
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.env import thrust_range
 from ttd3_jax.td3 import networks
@@ -145,24 +146,21 @@ def c_header(p: Policy, note: str = "") -> str:
 
 
 def observation_layout(cfg: EnvConfig, obs_size: int) -> list[str]:
-    """Names of the observation's entries in order (``sim.env.TrackingEnv.observe``)."""
-    rel = cfg.obs_frame == "track"  # positions relative to p_d,k
-    names = [f"{'p - p_d' if rel else 'p'}.{a}" for a in "xyz"] + [f"v.{a}" for a in "xyz"]
-    names += [f"q.{a}" for a in "wxyz"]
-    names += [f"{'p_ahead - p_d' if rel else 'p_ahead'}.{a}" for a in "xyz"]
-    names += [f"p_ahead - p.{a}" for a in "xyz"] + ["|p_err - p|"]
-    names += [f"omega.{a}" for a in "xyz"][: max(0, obs_size - len(names))]
+    """Names of the observation's entries in order (:func:`ttd3_jax.sim.observation.layout`)."""
+    names = observation.layout(cfg).names
+    if len(names) != obs_size:
+        raise ValueError(f"the observation layout has {len(names)} entries, the policy reads {obs_size}")
     return names
 
 
 def action_map(cfg: EnvConfig) -> dict:
     """How the action in [-1, 1]^4 becomes thrust (N) and body-rate commands (rad/s)."""
     lo, hi, hover = (float(x) for x in thrust_range(cfg))
-    rule = ("a0 >= 0: hover + a0 (max - hover); a0 < 0: hover + a0 (hover - min)" if cfg.hover_centered_thrust
-            else "min + (a0 + 1) / 2 (max - min)")  # fmt: skip
+    rule = ("a0 >= 0: hover + a0 (max - hover); a0 < 0: hover + a0 (hover - min)"
+            if cfg.vehicle.hover_centered_thrust else "min + (a0 + 1) / 2 (max - min)")  # fmt: skip
     return dict(thrust_N=dict(min=lo, max=hi, hover=hover, rule=rule),
-                body_rates_rad_s=dict(min=list(map(float, np.broadcast_to(cfg.quad.rate_min, 3))),
-                                      max=list(map(float, np.broadcast_to(cfg.quad.rate_max, 3))),
+                body_rates_rad_s=dict(min=list(map(float, np.broadcast_to(cfg.vehicle.quad.rate_min, 3))),
+                                      max=list(map(float, np.broadcast_to(cfg.vehicle.quad.rate_max, 3))),
                                       rule="a1..a3 -> min + (a + 1) / 2 (max - min)"))  # fmt: skip
 
 
@@ -200,9 +198,10 @@ TEST_TRACKS = ("experiments/tracks/protocol/ in the ttd3_jax repository: spiral_
 
 def observation_spec(cfg: EnvConfig, obs_size: int) -> dict:
     """What each observation entry means: frame, look-ahead, error reference, quaternion sign."""
-    track = cfg.obs_frame == "track"
+    track, look = cfg.observation.obs_frame == "track", cfg.observation.lookahead_k
     return dict(
         names=observation_layout(cfg, obs_size),
+        parts=observation.layout(cfg).describe(),
         frame=(
             "track: positions relative to p_d,k, the reference at the current physics step k (a shift "
             "of origin only; the axes are the world's); velocity stays world-frame"
@@ -210,11 +209,11 @@ def observation_spec(cfg: EnvConfig, obs_size: int) -> dict:
         if track
         else "world: positions in world coordinates",  # fmt: skip
         p_d_k="the reference position at physics step k (time k * physics_dt_s since the start)",
-        lookahead_physics_steps=cfg.lookahead_k,
-        p_ahead=f"p_d,k+{cfg.lookahead_k}: the reference {cfg.lookahead_k * cfg.dt * 1e3:g} ms ahead",
-        error_reference=("p_err = p_d,k" if cfg.err_ref == "current" else "p_err = p_d,k+1"),
+        lookahead_physics_steps=cfg.observation.lookahead_k,
+        p_ahead=f"p_d,k+{look}: the reference {look * cfg.dt * 1e3:g} ms ahead",
+        error_reference=("p_err = p_d,k" if cfg.observation.err_ref == "current" else "p_err = p_d,k+1"),
         quaternion_sign="q observed with qw >= 0 (q and -q are one attitude)"
-        if cfg.canonical_q_obs
+        if cfg.observation.canonical_q_obs
         else "q as integrated (either sign)",  # fmt: skip
         noise="none in the evaluation protocol",
     )
@@ -235,12 +234,13 @@ def sidecar(run_dir: str, run: runs.LoadedRun, seed: int, best: bool, obs_size: 
     """``policy.json``: what the policy reads and writes, at what rate, for which vehicle, and
     every fact a re-implementation needs to fly it and reproduce its tracking error."""
     cfg = run.env_config
+    quad = cfg.vehicle.quad
     epoch = run.epoch[seed] if isinstance(run.epoch, dict) else run.epoch
     return dict(observation=observation_layout(cfg, obs_size), obs_size=obs_size,
                 observation_spec=observation_spec(cfg, obs_size), conventions=CONVENTIONS,
                 action_size=4, action_map=action_map(cfg), control_hz=1 / cfg.control_dt,
-                action_repeat=cfg.action_repeat, physics_dt_s=cfg.dt, vehicle=dataclasses.asdict(cfg.quad),
-                rate_model=dict(name=cfg.quad.rate_model, meaning=RATE_MODEL_MEANING[cfg.quad.rate_model]),
+                action_repeat=cfg.action_repeat, physics_dt_s=cfg.dt, vehicle=dataclasses.asdict(quad),
+                rate_model=dict(name=quad.rate_model, meaning=RATE_MODEL_MEANING[quad.rate_model]),
                 evaluation_protocol=PROTOCOL, test_tracks=TEST_TRACKS,
                 expected_tracking_error=dict(sum_norm_e_m=expected_errors(run_dir, seed, epoch),
                                              protocol="evaluation_protocol above, float32"),

@@ -13,7 +13,7 @@ import dacite
 import tyro
 
 from ttd3_jax import checks, envs
-from ttd3_jax.sim.config import EnvConfig, make_config
+from ttd3_jax.sim.config import EnvConfig, grouped, make_config
 from ttd3_jax.td3.buffer import transition_bytes
 from ttd3_jax.td3.config import Hyper, TrainConfig, validate_hyper
 from ttd3_jax.td3.env_spec import EnvSpec
@@ -22,9 +22,11 @@ from ttd3_jax.td3.trainer import Trainer, make_trainer
 QUADROTOR = "quadrotor"
 PRESETS = ("fast", "fast_dpg", "fast_model_free", "paper", "mujoco")
 SEED_LIMIT = 2**32  # seeds are uint32 PRNG keys: seed + num_seeds - 1 must stay below this
-CONFIG_FORMAT = 2  # config.json's "format"; files without one were written before it (format 0)
+CONFIG_FORMAT = 3  # config.json's "format"; files without one were written before it (format 0)
+GROUPED_TASK = 3  # the first format whose "task" holds EnvConfig's groups (before: flat, sim.config.grouped)
 # Fields added to the run spec after runs were first saved (2026-11-22): for each, the first
-# format whose files hold it, and the value that reproduces what a run saved before it did.
+# format whose files hold it, and the value that reproduces what a run saved before it did
+# (task fields by their name in the flat task of formats 0-2).
 ADDED_FIELDS = {
     ("train", "model_horizon"): (1, 0),  # 2026-12-01: the model-based actor update
     ("train", "critic_arch"): (1, "mlp"),  # 2026-12-03: residual critics
@@ -82,11 +84,11 @@ class RunSpec:
         ):
             checks.instance(name, getattr(self, name), kind)
         validate_hyper(self.hp)  # (model_horizon's env is checked where the trainer is made)
-        if self.task.track != "train" or self.task.los_seed != 0:
+        if self.task.tracks.track != "train" or self.task.tracks.los_seed != 0:
             raise ValueError(
-                "task.track must be 'train' and task.los_seed 0 (training draws the training mixture; the "
-                "test and validation tracks are never trained on), got "
-                f"{self.task.track!r}, {self.task.los_seed}"
+                "task.tracks.track must be 'train' and task.tracks.los_seed 0 (training draws the training "
+                "mixture; the test and validation tracks are never trained on), got "
+                f"{self.task.tracks.track!r}, {self.task.tracks.los_seed}"
             )
 
     @property
@@ -181,7 +183,8 @@ def migrate(d) -> dict:
     """``config.json`` as any version wrote it, in the current layout (without ``format``).
     A file of an earlier format (0: no ``format``, written before 2026-12-04) may lack the
     fields :data:`ADDED_FIELDS` added in later formats, which take the value runs had before
-    them; nothing else is filled."""
+    them; nothing else is filled.  Formats 0-2 hold the task flat: it is grouped by
+    :func:`ttd3_jax.sim.config.grouped`."""
     if not isinstance(d, dict):
         raise ValueError(f"run spec: the file must hold a JSON object, got {type(d).__name__}")
     version = d.get("format", 0)
@@ -193,6 +196,8 @@ def migrate(d) -> dict:
     for (group, name), (since, value) in ADDED_FIELDS.items():
         if version < since and isinstance(out.get(group), dict) and name not in out[group]:
             out[group] = {**out[group], name: value}
+    if version < GROUPED_TASK and isinstance(out.get("task"), dict):
+        out["task"] = grouped(out["task"])
     return out
 
 

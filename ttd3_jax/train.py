@@ -2,7 +2,7 @@
 
     python -m ttd3_jax.train                          # preset "fast": quadrotor, T-TD3, 1 seed
     python -m ttd3_jax.train --preset fast_dpg --algo td3 --num-seeds 3
-    python -m ttd3_jax.train --task.e-max 1.5 --hp.lr-actor 5e-4   # any field of the run spec
+    python -m ttd3_jax.train --task.reward.e-max 1.5 --hp.lr-actor 5e-4   # any field of the run spec
     python -m ttd3_jax.train --train-tracks my_tracks/ # + your CSV tracks in the training mixture
     python -m ttd3_jax.train --vehicle crazyflie      # a named vehicle (sim.vehicles) for the task
     python -m ttd3_jax.train --resume runs/RUN_DIR    # continue from the newest checkpoint
@@ -40,8 +40,8 @@ DESCRIPTION = (
     "that stopped before its first checkpoint; a run with one is refused), "
     "--compile-cache DIR|none (XLA compilation cache; default ~/.cache/ttd3_jax/xla), "
     "--train-tracks CSV|DIR (your tracks in the training mixture, in a share "
-    "--task.train-tracks-weight of the episodes), --vehicle {vehicles} (the task's vehicle, "
-    "default: the preset's; --task.quad.* flags apply on top)."
+    "--task.tracks.train-tracks-weight of the episodes), --vehicle {vehicles} (the task's vehicle, "
+    "default: the preset's; --task.vehicle.quad.* flags apply on top)."
 )
 
 
@@ -124,7 +124,7 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, sp.RunSpec | None]:
                    getattr(default.task, f.name)]  # fmt: skip
         raise ValueError(f"--task.* sets the quadrotor env; env {spec.env!r} has none (changed: {changed})")
     if known.train_tracks is not None:
-        task = dataclasses.replace(spec.task, train_tracks=track_files(known.train_tracks))
+        task = spec.task.replace(train_tracks=track_files(known.train_tracks))
         spec = dataclasses.replace(spec, task=task)
     known.out = "runs" if known.out is None else known.out
     runs.check_out_dir(known.out)

@@ -5,7 +5,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -14,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from ttd3_jax.sim import observation
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.dynamics import QuadState
@@ -43,13 +43,15 @@ def sensed_controller(controller: Controller, cfg: EnvConfig) -> Controller:
     reaches classical controllers as it reaches a policy.  Without noise the two agree
     (q and −q are the same attitude; track-frame positions are shifted back)."""
 
+    lay = observation.layout(cfg)
+
     def sensed(s):
         ps, o = s.pipeline_state, s.obs
-        p = o[0:3]
-        if cfg.obs_frame == "track":
+        p = o[lay.slice("p")]
+        if cfg.observation.obs_frame == "track":
             p = p + tr.position(ps.track, ps.k, cfg.dt).astype(p.dtype)
-        w = o[17:20] if cfg.quad.rate_model != "instant" else ps.quad.w
-        quad = QuadState(p=p, v=o[3:6], q=o[6:10], w=w)
+        w = o[lay.slice("omega")] if lay.has("omega") else ps.quad.w
+        quad = QuadState(p=p, v=o[lay.slice("v")], q=o[lay.slice("q")], w=w)
         return s.replace(pipeline_state=ps.replace(quad=quad))
 
     return Controller(
@@ -78,7 +80,7 @@ def closed_loop(env: TrackingEnv, controller: Controller, state) -> Rollout:
         s, ctrl = carry
         a, ctrl = controller.act(ctrl, s)
         # the action the env applies now: the previous one under ``action_delay = 1``
-        applied = s.pipeline_state.prev_action if c.action_delay else jnp.clip(a, -1.0, 1.0)
+        applied = s.pipeline_state.prev_action if c.disturbances.action_delay else jnp.clip(a, -1.0, 1.0)
         s = env.step(s, a)
         ps, m = s.pipeline_state, s.metrics
         ref = tr.position(ps.track, ps.k, c.dt)
@@ -111,7 +113,7 @@ def to_paper_map(actions, cfg: EnvConfig) -> np.ndarray:
     """Normalised actions (..., 4) of an env with config ``cfg`` in the paper's action map
     (O2: thrust f_min + (a0+1)/2·(f_max − f_min), no hover centring): the same physical
     commands, so controllers trained or built with different maps become comparable."""
-    paper = dataclasses.replace(cfg, hover_centered_thrust=False, thrust_map_mass=None)
+    paper = cfg.replace(hover_centered_thrust=False, thrust_map_mass=None)
     return np.asarray(control_to_action(paper, action_to_control(cfg, jnp.asarray(actions))))
 
 
@@ -128,8 +130,8 @@ def test_tracks(env: TrackingEnv, los_seeds=(0,)) -> tr.Track:
     axis with the table size of ``env`` (so one ``vmap`` evaluates them all)."""
     c = env.config
     n = env.num_segments
-    tracks = [tr.spiral_rt(c.tracks, n)] + [
-        tr.los_test_track(s, c.tracks, num_segments=n, dt=c.dt, horizon_steps=c.horizon_steps)
+    tracks = [tr.spiral_rt(c.tracks.generator, n)] + [
+        tr.los_test_track(s, c.tracks.generator, num_segments=n, dt=c.dt, horizon_steps=c.horizon_steps)
         for s in los_seeds
     ]
     return jax.tree.map(lambda *x: jnp.stack(x), *tracks)
@@ -157,6 +159,6 @@ def test_and_validation_metrics(cfg: EnvConfig, controller: Controller) -> dict:
     for i, name in enumerate(("spiral", "los")):
         out.update({f"{name}_{k}": v[i] for k, v in m.items()})
     venv = TrackingEnv(cfg.for_eval("validation"))
-    val = tr.validation_tracks(cfg.tracks, cfg.dt, cfg.horizon_steps, venv.num_segments)
+    val = tr.validation_tracks(cfg.tracks.generator, cfg.dt, cfg.horizon_steps, venv.num_segments)
     out["val_tracking_error"] = jnp.mean(evaluate_on_tracks(venv, controller, val)["tracking_error"])
     return out

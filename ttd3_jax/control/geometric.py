@@ -75,7 +75,7 @@ def geometric_controller(cfg: EnvConfig, gains: GeometricGains | None = None) ->
     def act(carry, state):
         ps = state.pipeline_state
         p_ref, v_ref, a_ref = tr.evaluate(ps.track, ps.k, cfg.dt)
-        u = geometric_control(cfg.quad, gains, ps.quad, p_ref=p_ref, v_ref=v_ref, a_ref=a_ref)
+        u = geometric_control(cfg.vehicle.quad, gains, ps.quad, p_ref=p_ref, v_ref=v_ref, a_ref=a_ref)
         return control_to_action(cfg, u), carry
 
     return Controller(init=lambda s: (), act=act)

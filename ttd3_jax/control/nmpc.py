@@ -136,7 +136,7 @@ class NMPC:
     def __init__(self, env_config, cfg: NMPCConfig | None = None):
         self.env_config = env_config
         self.cfg = cfg = cfg or NMPCConfig()
-        self.params: QuadParams = env_config.quad
+        self.params: QuadParams = env_config.vehicle.quad
         self.dt = env_config.dt
         # physics step offsets of the nodes 0..N (reference sampling)
         self.node_steps = tuple(int(round(i * cfg.dt_node / self.dt)) for i in range(cfg.horizon + 1))

@@ -8,8 +8,6 @@ the crash count (``python -m ttd3_jax.evaluate [RUN_DIR] --robustness`` prints i
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 
@@ -37,19 +35,19 @@ def robustness_conditions(cfg: EnvConfig) -> dict[str, EnvConfig]:
     conditions pin ``thrust_map_mass`` to the nominal mass, so that a hover-centred action map
     does not learn of the change either.  A step of delay is one control step (1 or 10 ms)."""
     nominal = cfg.for_eval("los_rt")
-    m0 = cfg.quad.mass if cfg.thrust_map_mass is None else cfg.thrust_map_mass
+    m0 = cfg.vehicle.quad.mass if cfg.vehicle.thrust_map_mass is None else cfg.vehicle.thrust_map_mass
 
     def mass(factor):
-        quad = nominal.quad.replace(mass=cfg.quad.mass * factor)
-        return dataclasses.replace(nominal, quad=quad, thrust_map_mass=m0)
+        quad = nominal.vehicle.quad.replace(mass=cfg.vehicle.quad.mass * factor)
+        return nominal.replace(quad=quad, thrust_map_mass=m0)
 
     return {
         "nominal": nominal,
         "wind": cfg.for_eval("los_rt", wind_sigma=ROBUSTNESS_WIND),
         "mass+20": mass(1.0 + ROBUSTNESS_MASS),
         "mass-20": mass(1.0 - ROBUSTNESS_MASS),
-        "obs_noise": dataclasses.replace(nominal, **ROBUSTNESS_OBS_NOISE),
-        "delay": dataclasses.replace(nominal, action_delay=1),
+        "obs_noise": nominal.replace(**ROBUSTNESS_OBS_NOISE),
+        "delay": nominal.replace(action_delay=1),
     }
 
 

@@ -27,24 +27,41 @@ DT_MAX = 0.01  # s: the physics step the integrator is used with at most (the bo
 EVAL_CRASH_M = 1.0  # m: every controller is judged crashed once its error exceeds this in evaluation
 
 
-@dataclasses.dataclass(frozen=True)
-class EnvConfig:
-    """Static environment configuration (units in comments). Validated on construction."""
+def _where(group: str, name: str) -> str:
+    return f"EnvConfig.{group}.{name}"
 
-    # time
-    dt: float = 1e-3  # s, physics (RK4) step
-    episode_steps: int = 3000  # physics steps per episode (3 s)
-    action_repeat: int = 1  # physics steps per control step (T1, T9)
-    # vehicle and integrator (D4, D5, D7)
+
+@dataclasses.dataclass(frozen=True)
+class VehicleConfig:
+    """The vehicle, its integrator and the action map (D4, D5, D7, O2)."""
+
     quad: QuadParams = QuadParams()
     rk4_substeps: int = 1
     renormalize: bool = True
+    hover_centered_thrust: bool = False  # a0 = 0 means hover thrust
+    thrust_map_mass: float | None = None  # kg: mass whose hover thrust the action map assumes
+    #   under hover_centered_thrust (None = quad.mass); set to the nominal mass when quad.mass
+    #   is changed, so that a mass error stays unknown to the action map (and the controller)
+
+    def __post_init__(self):
+        f = lambda name: _where("vehicle", name)  # noqa: E731
+        checks.integer(f("rk4_substeps"), self.rk4_substeps, 1)
+        for name in ("renormalize", "hover_centered_thrust"):
+            checks.boolean(f(name), getattr(self, name))
+        if self.thrust_map_mass is not None:
+            checks.number(f("thrust_map_mass"), self.thrust_map_mass, 0, lo_open=True, unit=" or None")
+        checks.instance(f("quad"), self.quad, QuadParams)
+        validate_params(self.quad)
+
+
+@dataclasses.dataclass(frozen=True)
+class ObservationConfig:
+    """What the policy observes (O1; the parts: ``sim.observation.layout``)."""
+
     canonical_q_obs: bool = True  # observe q with qw >= 0
-    # observation and action (O1, O2)
     err_ref: str = "current"
     lookahead_k: int = 1  # physics steps ahead for the observed reference point
     obs_frame: str = "world"  # "track": positions relative to p_d,k (translation invariant)
-    hover_centered_thrust: bool = False  # a0 = 0 means hover thrust
     # appended to the observation (not in the paper): the last applied action (4) and the
     # leaky integral ∫(p_d − p) dt (3, m·s, leak time constant memory_tau s)
     obs_memory: bool = False
@@ -52,7 +69,21 @@ class EnvConfig:
     # appended last, for the critics only (the actor sees the observation without them):
     # the wind acceleration (3, m/s²) and p_d 0.5 s and 1 s after p_d,k+L, relative to it (6, m)
     obs_privileged: bool = False
-    # reward and termination (R1-R4)
+
+    def __post_init__(self):
+        f = lambda name: _where("observation", name)  # noqa: E731
+        checks.number(f("memory_tau"), self.memory_tau, 0, lo_open=True)
+        checks.integer(f("lookahead_k"), self.lookahead_k, 1)
+        checks.one_of(f("err_ref"), self.err_ref, ERR_REFS)
+        checks.one_of(f("obs_frame"), self.obs_frame, OBS_FRAMES)
+        for name in ("canonical_q_obs", "obs_memory", "obs_privileged"):
+            checks.boolean(f(name), getattr(self, name))
+
+
+@dataclasses.dataclass(frozen=True)
+class RewardConfig:
+    """Reward and termination (R1-R4)."""
+
     err_cost: str = "paper"  # r_e: "paper" (e, or e² past 1 m), "squared", "log": ln(1 + e/err_scale)
     err_scale: float = 0.02  # m, ε of err_cost="log"
     rho1: float = 1.0
@@ -63,29 +94,104 @@ class EnvConfig:
     e_max: float = 2.0  # m
     # reward of a crash; None: rho1 r_e(e_max) action_repeat / (1 - 0.99), 400 for the paper
     crash_penalty: float | None = None
-    # tracks and initial state (T1-T8, R5)
+
+    def __post_init__(self):
+        f = lambda name: _where("reward", name)  # noqa: E731
+        for name in ("e_max", "rho1", "err_scale"):
+            checks.number(f(name), getattr(self, name), 0, lo_open=True)
+        checks.number(f("rho2"), self.rho2, 0)
+        if self.crash_penalty is not None:
+            checks.number(f("crash_penalty"), self.crash_penalty, 0, unit=" or None")
+        checks.one_of(f("err_cost"), self.err_cost, ERR_COSTS)
+        for name in ("effort_hover_relative", "terminate"):
+            checks.boolean(f(name), getattr(self, name))
+        w = self.effort_weights
+        if len(w) != 4 or not all(checks.is_number(x) and x >= 0 for x in w):
+            checks.fail(f("effort_weights"), "4 finite numbers >= 0", w)
+
+
+@dataclasses.dataclass(frozen=True)
+class TracksConfig:
+    """The tracks flown (T1-T8): which, the generators' settings, users' training tracks."""
+
     track: str = "train"  # one of TRACK_MODES
     los_seed: int = 0  # LOS-RT test instance when track == "los_rt"
-    tracks: tr.TrackConfig = tr.TrackConfig()
-    randomize_init: bool = True
-    init_pos: float = 0.1  # m, ± per axis around p_d(0)
-    init_vel: float = 0.2  # m/s, ± per axis
-    init_tilt_deg: float = 10.0  # deg, max tilt about a random horizontal axis
-    init_yaw_deg: float = 15.0  # deg, ± yaw
-    # disturbances (O3)
+    generator: tr.TrackConfig = tr.TrackConfig()  # the Spiral, LOS and training-mixture generators
+    # users' tracks in the training mixture (never the test or suite tracks)
+    train_tracks: tuple[str, ...] = ()  # CSV files read by sim.custom_tracks.from_csv
+    train_tracks_weight: float = 0.25  # probability that a training episode flies one of them
+
+    def __post_init__(self):
+        f = lambda name: _where("tracks", name)  # noqa: E731
+        checks.one_of(f("track"), self.track, TRACK_MODES)
+        checks.number(f("los_seed"), self.los_seed, 0)
+        if not all(isinstance(p, str) and os.path.isfile(p) for p in self.train_tracks):
+            bad = next(p for p in self.train_tracks if not (isinstance(p, str) and os.path.isfile(p)))
+            raise ValueError(f"{f('train_tracks')}: {bad!r} is not a file; allowed: CSV track files")
+        checks.number(f("train_tracks_weight"), self.train_tracks_weight, 0, 1, lo_open=True)
+        checks.instance(f("generator"), self.generator, tr.TrackConfig)
+
+
+@dataclasses.dataclass(frozen=True)
+class DisturbancesConfig:
+    """What the controller does not command: wind, observation noise, latency (O3)."""
+
     wind_sigma: float = 0.0  # m/s^2, stationary std of the OU acceleration
     wind_tau: float = 0.5  # s, OU correlation time
     obs_noise_pos: float = 0.0  # m, std
     obs_noise_vel: float = 0.0  # m/s, std
     obs_noise_quat: float = 0.0  # std on each quaternion component (then renormalised)
-    # robustness evaluation (not in the paper)
     action_delay: int = 0  # control steps between an action and its application (0 or 1)
-    # users' tracks in the training mixture (never the test or suite tracks)
-    train_tracks: tuple[str, ...] = ()  # CSV files read by sim.custom_tracks.from_csv
-    train_tracks_weight: float = 0.25  # probability that a training episode flies one of them
-    thrust_map_mass: float | None = None  # kg: mass whose hover thrust the action map assumes
-    #   under hover_centered_thrust (None = quad.mass); set to the nominal mass when quad.mass
-    #   is changed, so that a mass error stays unknown to the action map (and the controller)
+
+    def __post_init__(self):
+        f = lambda name: _where("disturbances", name)  # noqa: E731
+        checks.number(f("wind_tau"), self.wind_tau, 0, lo_open=True)
+        for name in ("wind_sigma", "obs_noise_pos", "obs_noise_vel", "obs_noise_quat"):
+            checks.number(f(name), getattr(self, name), 0)
+        checks.one_of(f("action_delay"), self.action_delay, (0, 1))
+
+
+@dataclasses.dataclass(frozen=True)
+class RandomizationConfig:
+    """What each training episode draws (R5): the initial state around the track's start."""
+
+    randomize_init: bool = True
+    init_pos: float = 0.1  # m, ± per axis around p_d(0)
+    init_vel: float = 0.2  # m/s, ± per axis
+    init_tilt_deg: float = 10.0  # deg, max tilt about a random horizontal axis
+    init_yaw_deg: float = 15.0  # deg, ± yaw
+
+    def __post_init__(self):
+        f = lambda name: _where("randomization", name)  # noqa: E731
+        checks.boolean(f("randomize_init"), self.randomize_init)
+        for name in ("init_pos", "init_vel", "init_tilt_deg", "init_yaw_deg"):
+            checks.number(f(name), getattr(self, name), 0)
+
+
+GROUPS = {"vehicle": VehicleConfig, "observation": ObservationConfig, "reward": RewardConfig,
+          "tracks": TracksConfig, "disturbances": DisturbancesConfig,
+          "randomization": RandomizationConfig}  # fmt: skip
+TIME_FIELDS = ("dt", "episode_steps", "action_repeat")  # EnvConfig's own fields besides the groups
+# every field of the groups, by name (the names are unique across groups) -> its group
+FIELD_GROUP = {f.name: g for g, kind in GROUPS.items() for f in dataclasses.fields(kind)}
+# the flat EnvConfig of config.json formats 0-2: the names that changed on grouping
+FLAT_RENAMED = {"tracks": "generator"}
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    """Static environment configuration: the clock, then one group per concern (units in
+    comments).  Validated on construction; :meth:`replace` sets fields by name."""
+
+    dt: float = 1e-3  # s, physics (RK4) step
+    episode_steps: int = 3000  # physics steps per episode (3 s)
+    action_repeat: int = 1  # physics steps per control step (T1, T9)
+    vehicle: VehicleConfig = VehicleConfig()
+    observation: ObservationConfig = ObservationConfig()
+    reward: RewardConfig = RewardConfig()
+    tracks: TracksConfig = TracksConfig()
+    disturbances: DisturbancesConfig = DisturbancesConfig()
+    randomization: RandomizationConfig = RandomizationConfig()
 
     def __post_init__(self):
         _validate(self)
@@ -104,16 +210,33 @@ class EnvConfig:
     @property
     def horizon_steps(self) -> int:
         """Physics steps at which a reference point may be read."""
-        extra = round(max(PRIVILEGED_AHEAD_S) / self.dt) if self.obs_privileged else 0
-        return self.episode_steps + self.lookahead_k + 2 + extra
+        o = self.observation
+        extra = round(max(PRIVILEGED_AHEAD_S) / self.dt) if o.obs_privileged else 0
+        return self.episode_steps + o.lookahead_k + 2 + extra
 
     @property
     def crash_cost(self) -> float:
         """The reward a crash costs: ``crash_penalty``, or by default what staying at
         ``e_max`` would cost for ever, ρ₁ r_e(e_max) · action_repeat / (1 − 0.99)."""
-        if self.crash_penalty is not None:
-            return self.crash_penalty
-        return self.rho1 * error_cost_value(self, self.e_max) * self.action_repeat / (1 - CRASH_GAMMA)
+        r = self.reward
+        if r.crash_penalty is not None:
+            return r.crash_penalty
+        return r.rho1 * error_cost_value(self, r.e_max) * self.action_repeat / (1 - CRASH_GAMMA)
+
+    def replace(self, **changes) -> EnvConfig:
+        """This config with ``changes``: its own fields (the clock, whole groups) or any
+        group's field by its name (``wind_sigma=0.5`` sets ``disturbances.wind_sigma``)."""
+        return _replace(self, **changes)
+
+    @staticmethod
+    def path(name: str) -> str:
+        """Where field ``name`` sits: ``group.name`` for a group's field, else ``name``."""
+        return f"{FIELD_GROUP[name]}.{name}" if name in FIELD_GROUP and name not in GROUPS else name
+
+    def get(self, name: str):
+        """The value of field ``name``: its own, or any group's by its name (as :meth:`replace`)."""
+        group, _, field = self.path(name).rpartition(".")
+        return getattr(getattr(self, group) if group else self, field)
 
     def for_eval(self, track: str, los_seed: int = 0, wind_sigma: float = 0.0) -> EnvConfig:
         """The evaluation protocol (spec §2.5): fixed track, start on p_d(0) at rest and
@@ -122,65 +245,70 @@ class EnvConfig:
         ``EVAL_PROTOCOL_FIELDS`` (``episode_steps`` stays: 3000, the paper's)."""
         quiet = dict(randomize_init=False, terminate=False, e_max=EVAL_CRASH_M, obs_noise_pos=0.0,
                      obs_noise_vel=0.0, obs_noise_quat=0.0)  # fmt: skip
-        return dataclasses.replace(self, track=track, los_seed=los_seed, wind_sigma=wind_sigma, **quiet)
+        return self.replace(track=track, los_seed=los_seed, wind_sigma=wind_sigma, **quiet)
+
+
+def _replace(cfg: EnvConfig, **changes) -> EnvConfig:
+    own = {f.name for f in dataclasses.fields(EnvConfig)}
+    unknown = sorted(set(changes) - own - set(FIELD_GROUP))
+    if unknown:
+        raise ValueError(f"unknown EnvConfig field(s) {unknown}; allowed: {sorted(own | set(FIELD_GROUP))}")
+    top = {k: v for k, v in changes.items() if k in own}
+    for group in GROUPS:
+        mine = {k: v for k, v in changes.items() if FIELD_GROUP.get(k) == group and k not in own}
+        if mine:
+            top[group] = dataclasses.replace(top.get(group, getattr(cfg, group)), **mine)
+    return dataclasses.replace(cfg, **top) if top else cfg
+
+
+def grouped(flat: dict) -> dict:
+    """A flat EnvConfig as ``config.json`` formats 0-2 stored it, in today's groups (the one
+    conversion; field values are not checked here)."""
+    out = {k: v for k, v in flat.items() if k in TIME_FIELDS}
+    for group in GROUPS:
+        out[group] = {}
+    for name, value in flat.items():
+        name = FLAT_RENAMED.get(name, name)
+        if name in FIELD_GROUP:
+            out[FIELD_GROUP[name]][name] = value
+        elif name not in TIME_FIELDS:
+            out[name] = value  # not a field: from_dict names it
+    return out
 
 
 def error_cost_value(c: EnvConfig, e: float) -> float:
     """r_e(e) for a Python float ``e`` (m); ``sim.env.error_cost`` is the traced one."""
-    if c.err_cost == "squared":
+    if c.reward.err_cost == "squared":
         return e * e
-    if c.err_cost == "log":
-        return math.log1p(e / c.err_scale)
+    if c.reward.err_cost == "log":
+        return math.log1p(e / c.reward.err_scale)
     return e if e * e <= 1 else e * e
 
 
 def _validate(c: EnvConfig) -> None:
-    """Raise ``ValueError`` naming the bad field, its value and what is allowed."""
-    f = lambda name: f"EnvConfig.{name}"  # noqa: E731
-    for name in ("e_max", "wind_tau", "rho1", "err_scale", "memory_tau"):
-        checks.number(f(name), getattr(c, name), 0, lo_open=True)
-    checks.number(f("dt"), c.dt, 0, DT_MAX, lo_open=True,
+    """Raise ``ValueError`` naming the bad field, its value and what is allowed (each group
+    checks its own fields; these are the clock and the checks across groups)."""
+    checks.number("EnvConfig.dt", c.dt, 0, DT_MAX, lo_open=True,
                   unit=" s (the RK4 physics step; the paper's is 0.001 s, control steps are longer "
                        "through action_repeat)")  # fmt: skip
-    for name in ("episode_steps", "action_repeat", "rk4_substeps", "lookahead_k"):
-        checks.integer(f(name), getattr(c, name), 1)
-    for name in ("rho2", "init_pos", "init_vel", "init_tilt_deg", "init_yaw_deg", "wind_sigma",
-                 "obs_noise_pos", "obs_noise_vel", "obs_noise_quat", "los_seed"):  # fmt: skip
-        checks.number(f(name), getattr(c, name), 0)
-    if c.crash_penalty is not None:
-        checks.number(f("crash_penalty"), c.crash_penalty, 0, unit=" or None")
-    if c.thrust_map_mass is not None:
-        checks.number(f("thrust_map_mass"), c.thrust_map_mass, 0, lo_open=True, unit=" or None")
-    checks.one_of(f("action_delay"), c.action_delay, (0, 1))
-    for name, allowed in (("err_ref", ERR_REFS), ("err_cost", ERR_COSTS), ("obs_frame", OBS_FRAMES),
-                          ("track", TRACK_MODES)):  # fmt: skip
-        checks.one_of(f(name), getattr(c, name), allowed)
-    for name in ("renormalize", "canonical_q_obs", "hover_centered_thrust", "effort_hover_relative",
-                 "terminate", "randomize_init", "obs_memory", "obs_privileged"):  # fmt: skip
-        checks.boolean(f(name), getattr(c, name))
-    if c.obs_memory and c.action_delay:
+    for name in ("episode_steps", "action_repeat"):
+        checks.integer(f"EnvConfig.{name}", getattr(c, name), 1)
+    for group, kind in GROUPS.items():
+        checks.instance(f"EnvConfig.{group}", getattr(c, group), kind)
+    if c.observation.obs_memory and c.disturbances.action_delay:
         raise ValueError(
-            "EnvConfig.obs_memory needs action_delay 0 (the delayed env keeps its own last action)"
+            "EnvConfig.observation.obs_memory needs disturbances.action_delay 0 (the delayed env keeps "
+            "its own last action)"
         )
     if c.episode_steps % c.action_repeat:
         raise ValueError(
             f"EnvConfig.episode_steps ({c.episode_steps}) must be a multiple of action_repeat "
             f"({c.action_repeat})"
         )
-    w = c.effort_weights
-    if len(w) != 4 or not all(checks.is_number(x) and x >= 0 for x in w):
-        checks.fail("EnvConfig.effort_weights", "4 finite numbers >= 0", w)
-    checks.instance("EnvConfig.quad", c.quad, QuadParams)
-    validate_params(c.quad)
-    if not all(isinstance(p, str) and os.path.isfile(p) for p in c.train_tracks):
-        bad = next(p for p in c.train_tracks if not (isinstance(p, str) and os.path.isfile(p)))
-        raise ValueError(f"EnvConfig.train_tracks: {bad!r} is not a file; allowed: CSV track files")
-    checks.number("EnvConfig.train_tracks_weight", c.train_tracks_weight, 0, 1, lo_open=True)
-    checks.instance("EnvConfig.tracks", c.tracks, tr.TrackConfig)
 
 
 def make_config(preset: str = "paper", **overrides) -> EnvConfig:
-    """A named, documented configuration, with ``overrides`` (EnvConfig fields) on top.
+    """A named, documented configuration, with ``overrides`` (as :meth:`EnvConfig.replace` takes them) on top.
 
     ``paper``: 1 kHz control exactly as published (spec defaults), trained with an OU
     wind of 0.2 m/s^2.  ``practical``: 10 physics steps per action and a 50 ms
@@ -194,4 +322,4 @@ def make_config(preset: str = "paper", **overrides) -> EnvConfig:
         base = dict(wind_sigma=0.2, action_repeat=10, lookahead_k=50, obs_frame="track", e_max=1.0)
     else:
         raise ValueError(f"unknown env preset {preset!r}; allowed: {PRESETS}")
-    return EnvConfig(**{**base, **overrides})
+    return EnvConfig().replace(**{**base, **overrides})

@@ -4,13 +4,14 @@ One control step (``env.step``) applies a normalised action ``a ∈ [-1, 1]^4`` 
 ``action_repeat`` physics steps of ``dt`` seconds (one 1 ms RK4 step in the ``paper``
 preset); the configuration is :class:`~ttd3_jax.sim.config.EnvConfig`.
 
-Observation at physics step k (17-D, raw units, O1)::
+Observation at physics step k (raw units, O1), the parts of :func:`ttd3_jax.sim.observation.layout`::
 
     [p_k (3, m), v_k (3, m/s), q_k (4, qw>=0), p_d,k+L (3, m), p_d,k+L - p_k (3, m),
      ||p_d,k' - p_k|| (1, m)]          (+ ω_k (3, rad/s) for the first_order/torque models)
 
 with L = ``lookahead_k`` (1 in the paper) and k' = k (``err_ref="current"``) or k+1.
 ``obs_frame="track"`` moves the origin of the two absolute positions to p_d,k.
+``obs_memory`` and ``obs_privileged`` append the parts the layout names after these.
 Reward per physics step, with e' = ||p_d,k+1 - p_k+1|| after the step (R1-R3)::
 
     r = -rho1 * r_e(e') - rho2 * aᵀ Ω a,   r_e(e) = e if e² <= 1 else e²
@@ -23,7 +24,6 @@ and is truncated (``info["truncation"] = 1``) after ``episode_steps`` physics st
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import io
 import math
 
@@ -37,29 +37,29 @@ with contextlib.redirect_stdout(io.StringIO()):
     from brax.envs.base import Env, State
 
 from ttd3_jax.sim import custom_tracks as ct
-from ttd3_jax.sim import rng
+from ttd3_jax.sim import observation, rng
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import PRIVILEGED_AHEAD_S, EnvConfig, make_config
-from ttd3_jax.sim.dynamics import QuadState, quat_from_axis_angle, quat_mul, rk4_step
+from ttd3_jax.sim.dynamics import QuadParams, QuadState, quat_from_axis_angle, quat_mul, rk4_step
 
 _USER_TAG = 0x05E7  # folded into a reset's track key to pick users' training tracks
 
 
 def error_cost(cfg: EnvConfig, e: jax.Array) -> jax.Array:
     """r_e(e) of eq. 3 (``err_cost="paper"``), e² (``"squared"``) or ln(1 + e/ε) (``"log"``); e in m."""
-    if cfg.err_cost == "log":
-        return jnp.log1p(e / cfg.err_scale)
-    if cfg.err_cost == "squared":
+    if cfg.reward.err_cost == "log":
+        return jnp.log1p(e / cfg.reward.err_scale)
+    if cfg.reward.err_cost == "squared":
         return e * e
     return jnp.where(e * e <= 1.0, e, e * e)
 
 
 def thrust_range(cfg: EnvConfig):
     """``(min, max, hover)`` collective thrust of the action map (N, or the thrust units)."""
-    q = cfg.quad
+    q = cfg.vehicle.quad
     hover = q.hover_thrust
-    if cfg.thrust_map_mass is not None and q.thrust_units == "newton":
-        hover = q.gravity * cfg.thrust_map_mass
+    if cfg.vehicle.thrust_map_mass is not None and q.thrust_units == "newton":
+        hover = q.gravity * cfg.vehicle.thrust_map_mass
     return q.thrust_min, q.thrust_max, hover
 
 
@@ -71,11 +71,11 @@ def action_to_control(cfg: EnvConfig, a: jax.Array) -> jax.Array:
     """
     lo, hi, hover = thrust_range(cfg)
     a0 = a[..., 0]
-    if cfg.hover_centered_thrust:
+    if cfg.vehicle.hover_centered_thrust:
         f = jnp.where(a0 >= 0, hover + a0 * (hi - hover), hover + a0 * (hover - lo))
     else:
         f = lo + 0.5 * (a0 + 1.0) * (hi - lo)
-    rlo, rhi = cfg.quad.rate_min, cfg.quad.rate_max
+    rlo, rhi = cfg.vehicle.quad.rate_min, cfg.vehicle.quad.rate_max
     w = rlo + 0.5 * (a[..., 1:] + 1.0) * (rhi - rlo)
     return jnp.concatenate([f[..., None], w], -1)
 
@@ -84,11 +84,11 @@ def control_to_action(cfg: EnvConfig, u: jax.Array) -> jax.Array:
     """Inverse of :func:`action_to_control` (for controllers with physical outputs)."""
     lo, hi, hover = thrust_range(cfg)
     f = u[..., 0]
-    if cfg.hover_centered_thrust:
+    if cfg.vehicle.hover_centered_thrust:
         a0 = jnp.where(f >= hover, (f - hover) / (hi - hover), (f - hover) / (hover - lo))
     else:
         a0 = 2.0 * (f - lo) / (hi - lo) - 1.0
-    rlo, rhi = cfg.quad.rate_min, cfg.quad.rate_max
+    rlo, rhi = cfg.vehicle.quad.rate_min, cfg.vehicle.quad.rate_max
     aw = 2.0 * (u[..., 1:] - rlo) / (rhi - rlo) - 1.0
     return jnp.concatenate([a0[..., None], aw], -1)
 
@@ -138,70 +138,76 @@ class TrackingEnv(Env):
     def __init__(self, config: EnvConfig | None = None, **overrides):
         config = config or make_config("paper")
         if overrides:
-            config = dataclasses.replace(config, **overrides)
+            config = config.replace(**overrides)
         self.config = config
         c = config
-        if c.track in ("train", "validation"):
+        if c.tracks.track in ("train", "validation"):
             self._n_seg = tr.train_num_segments(c.horizon_steps, c.dt)
         else:
-            self._n_seg = tr.num_segments_for(c.horizon_steps, c.tracks.los_segment_steps)
+            self._n_seg = tr.num_segments_for(c.horizon_steps, c.tracks.generator.los_segment_steps)
         self._user = None  # users' training tracks, stacked, with the mixture's table size
-        if c.track == "train" and c.train_tracks:
-            user = [ct.from_csv(p, dt=c.dt).track() for p in c.train_tracks]
+        if c.tracks.track == "train" and c.tracks.train_tracks:
+            user = [ct.from_csv(p, dt=c.dt).track() for p in c.tracks.train_tracks]
             self._mix_n, self._n_seg = self._n_seg, max(self._n_seg, *(t.num_segments for t in user))
             self._user = jax.tree.map(lambda *x: jnp.stack(x), *(ct.pad(t, self._n_seg, c.dt) for t in user))
-        self._effort_w = tuple(float(w) for w in c.effort_weights)
-        self._rates_in_obs = c.quad.rate_model != "instant"
+        self._effort_w = tuple(float(w) for w in c.reward.effort_weights)
+        self.layout = observation.layout(c)  # the named parts of the observation
 
     # the Brax Env interface; dt is seconds per env step, num_segments the static track-table size
-    actor_observation_size = property(lambda self: 17 + 3 * self._rates_in_obs + 7 * self.config.obs_memory)
-    observation_size = property(lambda self: self.actor_observation_size + 9 * self.config.obs_privileged)
+    actor_observation_size = property(lambda self: self.layout.actor_size)
+    observation_size = property(lambda self: self.layout.size)
     action_size = property(lambda self: 4)
     backend = property(lambda self: "jax")
     dt = property(lambda self: self.config.control_dt)
     episode_length = property(lambda self: self.config.episode_length)
     num_segments = property(lambda self: self._n_seg)
 
-    def reset(self, rng: jax.Array) -> State:
-        """New episode: a track drawn per ``config.track`` and an initial state (R5)."""
+    def reset(self, rng: jax.Array, vehicle: QuadParams | None = None) -> State:
+        """New episode: a track drawn per ``config.tracks.track`` and an initial state (R5), flying
+        ``vehicle`` (None: the config's ``quad``; see :meth:`reset_with_track`)."""
         k_track, k_rest = jax.random.split(rng)
-        return self.reset_with_track(k_rest, self.sample_track(k_track))
+        return self.reset_with_track(k_rest, self.sample_track(k_track), vehicle)
 
     def sample_track(self, rng: jax.Array) -> tr.Track:
-        """The track an episode uses under ``config.track``."""
+        """The track an episode uses under ``config.tracks.track``."""
         c, n = self.config, self._n_seg
-        if c.track == "train":
+        if c.tracks.track == "train":
             if self._user is None:
-                return tr.sample_train_track(rng, c.tracks, c.dt, c.horizon_steps, n)
-            mix = ct.pad(tr.sample_train_track(rng, c.tracks, c.dt, c.horizon_steps, self._mix_n), n, c.dt)
+                return tr.sample_train_track(rng, c.tracks.generator, c.dt, c.horizon_steps, n)
+            mix = ct.pad(
+                tr.sample_train_track(rng, c.tracks.generator, c.dt, c.horizon_steps, self._mix_n), n, c.dt
+            )
             k_pick, k_use = jax.random.split(jax.random.fold_in(rng, _USER_TAG))
             user = jax.tree.map(
-                lambda x: x[jax.random.randint(k_pick, (), 0, len(c.train_tracks))], self._user
+                lambda x: x[jax.random.randint(k_pick, (), 0, len(c.tracks.train_tracks))], self._user
             )
-            use = jax.random.uniform(k_use) < c.train_tracks_weight
+            use = jax.random.uniform(k_use) < c.tracks.train_tracks_weight
             return jax.tree.map(lambda a, b: jnp.where(use, a, b), user, mix)
-        if c.track == "validation":
-            bank = tr.validation_tracks(c.tracks, c.dt, c.horizon_steps, n)
+        if c.tracks.track == "validation":
+            bank = tr.validation_tracks(c.tracks.generator, c.dt, c.horizon_steps, n)
             i = jax.random.randint(rng, (), 0, tr.NUM_VALIDATION_TRACKS)
             return jax.tree.map(lambda x: x[i], bank)
-        if c.track == "spiral_rt":
-            return tr.spiral_rt(c.tracks, n)
-        return tr.los_test_track(c.los_seed, c.tracks, num_segments=n, dt=c.dt, horizon_steps=c.horizon_steps)
+        if c.tracks.track == "spiral_rt":
+            return tr.spiral_rt(c.tracks.generator, n)
+        return tr.los_test_track(
+            c.tracks.los_seed, c.tracks.generator, num_segments=n, dt=c.dt, horizon_steps=c.horizon_steps
+        )
 
-    def reset_with_track(self, rng: jax.Array, track: tr.Track) -> State:
-        """New episode on a given track (used by evaluation over many tracks)."""
+    def reset_with_track(self, rng: jax.Array, track: tr.Track, vehicle: QuadParams | None = None) -> State:
+        """New episode on a given track (used by evaluation over many tracks), flying
+        ``vehicle`` (:func:`vehicle_arrays`; None: the config's ``quad``, read as constants)."""
         c = self.config
         k_init, k_wind, k_next = jax.random.split(rng, 3)
         quad = self._initial_state(k_init, tr.position(track, 0, c.dt))
         f = quad.p.dtype
         wind = jnp.zeros(3, f)
-        if c.wind_sigma > 0:
-            wind = c.wind_sigma * jax.random.normal(k_wind, (3,), f)
+        if c.disturbances.wind_sigma > 0:
+            wind = c.disturbances.wind_sigma * jax.random.normal(k_wind, (3,), f)
         fields = dict(quad=quad, k=jnp.zeros((), jnp.int32), track=track, wind=wind, key=k_next)
         fields["ref_next"] = jnp.zeros(3, f)
-        if c.action_delay:
+        if c.disturbances.action_delay:
             ps = DelayedTrackingState(**fields, prev_action=hover_action(c).astype(f))
-        elif c.obs_memory:
+        elif c.observation.obs_memory:
             ps = MemoryTrackingState(**fields, last_action=jnp.zeros(4, f), err_int=jnp.zeros(3, f))
         else:
             ps = TrackingState(**fields)
@@ -209,6 +215,8 @@ class TrackingEnv(Env):
         zero = jnp.zeros((), f)
         metrics = {"tracking_error": zero, "energy": zero, "energy_sq": zero, "crashed": zero}
         info = {"truncation": zero, "terminated": zero}
+        if vehicle is not None:  # only then: a nominal env keeps its state's layout (and checkpoints)
+            info["vehicle"] = vehicle_arrays(vehicle, f)
         return State(pipeline_state=ps, obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
 
     def step(self, state: State, action: jax.Array) -> State:
@@ -217,26 +225,27 @@ class TrackingEnv(Env):
         c = self.config
         ps = state.pipeline_state
         a = jnp.clip(action, -1.0, 1.0).astype(ps.quad.p.dtype)
-        if c.action_delay:
+        if c.disturbances.action_delay:
             a, ps = ps.prev_action, ps.replace(prev_action=a)
-        u = action_to_control(c, a)
+        u = action_to_control(c, a)  # the action map of the config's (nominal) vehicle
         effort = self._effort(a)
         zero = jnp.zeros((), ps.quad.p.dtype)
         carry = (ps.quad, ps.k, ps.wind, ps.key, zero, zero, jnp.zeros((), bool))
+        quad = state.info.get("vehicle", c.vehicle.quad)  # the vehicle flown
         if c.action_repeat == 1:
-            carry, p_ref = self._substep(ps.track, u, effort, carry, ps.ref_next)
+            carry, p_ref = self._substep(quad, ps.track, u, effort, carry, ps.ref_next)
         else:  # one compiled body, whatever the repeat count
             carry, p_refs = jax.lax.scan(
-                lambda cr, _: self._substep(ps.track, u, effort, cr), carry, None, c.action_repeat
+                lambda cr, _: self._substep(quad, ps.track, u, effort, cr), carry, None, c.action_repeat
             )
             p_ref = p_refs[-1]
         quad, k, wind, key, reward, err_sum, crashed = carry
-        terminated = crashed if c.terminate else jnp.zeros((), bool)
+        terminated = crashed if c.reward.terminate else jnp.zeros((), bool)
         reward = reward - c.crash_cost * terminated
         truncated = (k >= c.episode_steps) & ~terminated
         ps = ps.replace(quad=quad, k=k, wind=wind, key=key)
-        if c.obs_memory:
-            leak = math.exp(-c.control_dt / c.memory_tau)
+        if c.observation.obs_memory:
+            leak = math.exp(-c.control_dt / c.observation.memory_tau)
             err_int = leak * ps.err_int + c.control_dt * _zero_non_finite(p_ref - quad.p)
             ps = ps.replace(last_action=a, err_int=err_int)
         obs, ps = self.observe(ps, p_ref)
@@ -249,32 +258,39 @@ class TrackingEnv(Env):
         done = (terminated | truncated).astype(f)
         return state.replace(pipeline_state=ps, obs=obs, reward=reward, done=done, metrics=metrics, info=info)
 
-    def _substep(self, track, u, effort, carry, p_ref=None):
-        """One physics step of ``dt``: wind, RK4, tracking error, reward, crash flag.
+    def _substep(self, params, track, u, effort, carry, p_ref=None):
+        """One physics step of ``dt`` of vehicle ``params``: wind, RK4, tracking error, reward, crash flag.
 
         ``carry = (quad, k, wind, key, reward, err_sum, crashed)``; ``p_ref`` may pass
         p_d(k+1) when it is already known.  Returns the new carry and p_d(k+1)."""
         c = self.config
         quad, k, wind, key, reward, err_sum, crashed = carry
-        if c.wind_sigma > 0:
+        if c.disturbances.wind_sigma > 0:
             wind, key = ou_wind_step(c, wind, key)
-        wind_accel = wind if c.wind_sigma > 0 else None
-        quad = rk4_step(c.quad, quad, u, c.dt, wind_accel, substeps=c.rk4_substeps, renormalize=c.renormalize)
+        quad = rk4_step(
+            params,
+            quad,
+            u,
+            c.dt,
+            wind if c.disturbances.wind_sigma > 0 else None,
+            substeps=c.vehicle.rk4_substeps,
+            renormalize=c.vehicle.renormalize,
+        )
         k = k + 1
-        step_r = -c.rho2 * effort
+        step_r = -c.reward.rho2 * effort
         if p_ref is None:
             p_ref = tr.position(track, k, c.dt)
         e = jnp.linalg.norm(p_ref - quad.p)
         finite = jnp.isfinite(e) & _finite(quad)
-        step_r = step_r - c.rho1 * error_cost(c, e)
+        step_r = step_r - c.reward.rho1 * error_cost(c, e)
         reward = reward + jnp.where(~crashed & finite, step_r, 0.0)
         err_sum = err_sum + jnp.where(finite, e, jnp.inf)
-        crashed = crashed | ~finite | (e > c.e_max)
+        crashed = crashed | ~finite | (e > c.reward.e_max)
         return (quad, k, wind, key, reward, err_sum, crashed), p_ref
 
     def _effort(self, a: jax.Array) -> jax.Array:
         c = self.config
-        if c.effort_hover_relative:
+        if c.reward.effort_hover_relative:
             a = a - hover_action(c).astype(a.dtype)
         w = jnp.asarray(self._effort_w, a.dtype)
         return jnp.sum(w * a * a)
@@ -282,15 +298,15 @@ class TrackingEnv(Env):
     def _initial_state(self, rng: jax.Array, p0: jax.Array) -> QuadState:
         c = self.config
         f = p0.dtype
-        if not c.randomize_init:
+        if not c.randomization.randomize_init:
             return QuadState.hover(p0, f)
         u = jax.random.uniform(rng, (9,), f, -1.0, 1.0)  # one draw, sliced
-        p = p0 + c.init_pos * u[0:3]
-        v = c.init_vel * u[3:6]
+        p = p0 + c.randomization.init_pos * u[0:3]
+        v = c.randomization.init_vel * u[3:6]
         ang = math.pi * u[6]
         axis = jnp.stack([jnp.cos(ang), jnp.sin(ang), jnp.zeros((), f)])
-        tilt = 0.5 * (u[7] + 1.0) * math.radians(c.init_tilt_deg)
-        yaw = u[8] * math.radians(c.init_yaw_deg)
+        tilt = 0.5 * (u[7] + 1.0) * math.radians(c.randomization.init_tilt_deg)
+        yaw = u[8] * math.radians(c.randomization.init_yaw_deg)
         q = quat_mul(
             quat_from_axis_angle(jnp.array([0.0, 0.0, 1.0], f), yaw), quat_from_axis_angle(axis, tilt)
         )
@@ -302,50 +318,65 @@ class TrackingEnv(Env):
         c = self.config
         x = ps.quad
         p, v, q = x.p, x.v, x.q
-        if c.obs_noise_pos > 0 or c.obs_noise_vel > 0 or c.obs_noise_quat > 0:
+        if (
+            c.disturbances.obs_noise_pos > 0
+            or c.disturbances.obs_noise_vel > 0
+            or c.disturbances.obs_noise_quat > 0
+        ):
             # jax.random here, not ttd3_jax.sim.rng: the same draws, but fused with this arithmetic
             # they change the last bit of a few observations (tests/test_rng.py), and this runs
             # once per env step (robustness evaluation), not once per physics step
             key, kp, kv, kq = jax.random.split(ps.key, 4)
-            p = p + c.obs_noise_pos * jax.random.normal(kp, (3,), p.dtype)
-            v = v + c.obs_noise_vel * jax.random.normal(kv, (3,), p.dtype)
-            q = q + c.obs_noise_quat * jax.random.normal(kq, (4,), p.dtype)
+            p = p + c.disturbances.obs_noise_pos * jax.random.normal(kp, (3,), p.dtype)
+            v = v + c.disturbances.obs_noise_vel * jax.random.normal(kv, (3,), p.dtype)
+            q = q + c.disturbances.obs_noise_quat * jax.random.normal(kq, (4,), p.dtype)
             q = q / jnp.linalg.norm(q)
             ps = ps.replace(key=key)
-        if c.canonical_q_obs:
+        if c.observation.canonical_q_obs:
             q = jnp.where(q[0] < 0, -q, q)
-        p_ahead = tr.position(ps.track, ps.k + c.lookahead_k, c.dt)
-        p_next = p_ahead if c.lookahead_k == 1 else tr.position(ps.track, ps.k + 1, c.dt)
+        p_ahead = tr.position(ps.track, ps.k + c.observation.lookahead_k, c.dt)
+        p_next = p_ahead if c.observation.lookahead_k == 1 else tr.position(ps.track, ps.k + 1, c.dt)
         ps = ps.replace(ref_next=p_next)
-        if c.err_ref == "next":
+        if c.observation.err_ref == "next":
             p_err = p_next
         else:
             p_err = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
         err = jnp.linalg.norm(p_err - p)
-        if c.obs_frame == "track":  # same 17 numbers with the origin moved to p_d,k
+        if c.observation.obs_frame == "track":  # the same parts with the origin moved to p_d,k
             p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
-            parts = [p - p_now, v, q, p_ahead - p_now, p_ahead - p, err[None]]
+            parts = dict(p=p - p_now, v=v, q=q, p_ahead=p_ahead - p_now)
         else:
-            parts = [p, v, q, p_ahead, p_ahead - p, err[None]]
-        if self._rates_in_obs:
-            parts.append(x.w)
-        if c.obs_memory:
-            parts += [ps.last_action, ps.err_int]
-        if c.obs_privileged:
-            ahead = [ps.k + c.lookahead_k + round(t / c.dt) for t in PRIVILEGED_AHEAD_S]
-            parts += [ps.wind] + [tr.position(ps.track, k, c.dt) - p_ahead for k in ahead]
+            parts = dict(p=p, v=v, q=q, p_ahead=p_ahead)
+        parts.update(p_ahead_error=p_ahead - p, error=err[None])
+        if self.layout.has("omega"):
+            parts["omega"] = x.w
+        if c.observation.obs_memory:
+            parts.update(last_action=ps.last_action, error_integral=ps.err_int)
+        if c.observation.obs_privileged:
+            parts["wind"] = ps.wind
+            for t in PRIVILEGED_AHEAD_S:
+                k = ps.k + c.observation.lookahead_k + round(t / c.dt)
+                parts[f"p_ahead_{t:g}s"] = tr.position(ps.track, k, c.dt) - p_ahead
         # non-finite entries (a diverged state) read as 0, in one read of the concatenation
-        return _zero_non_finite(jnp.concatenate(parts)), ps
+        return _zero_non_finite(self.layout.build(parts, jnp.concatenate)), ps
+
+
+def vehicle_arrays(quad: QuadParams, dtype=None) -> QuadParams:
+    """``quad`` with every numeric field a JAX scalar of ``dtype`` (the state's float type):
+    what an env state carries as its vehicle.  Stack several (``jax.tree.map(jnp.stack)``)
+    and vmap ``reset_with_track`` over them to fly a different vehicle in each env."""
+    dtype = dtype or jnp.zeros(()).dtype
+    return jax.tree.map(lambda x: jnp.asarray(x, dtype), quad)
 
 
 def ou_wind_step(c: EnvConfig, wind: jax.Array, key: jax.Array):
     """One physics step (``c.dt``) of the OU wind acceleration ``wind`` (3,) m/s², with
-    stationary std ``c.wind_sigma`` and correlation time ``c.wind_tau``; returns
+    stationary std ``c.disturbances.wind_sigma`` and correlation time ``c.disturbances.wind_tau``; returns
     ``(wind, key)`` (one split and 3 normals of ``ttd3_jax.sim.rng``)."""
     key, sub = rng.split(key)
-    phi = math.exp(-c.dt / c.wind_tau)
+    phi = math.exp(-c.dt / c.disturbances.wind_tau)
     xi = rng.normal(sub, (3,), wind.dtype)
-    return phi * wind + c.wind_sigma * math.sqrt(1.0 - phi * phi) * xi, key
+    return phi * wind + c.disturbances.wind_sigma * math.sqrt(1.0 - phi * phi) * xi, key
 
 
 def yaw_of(q: jax.Array) -> jax.Array:

@@ -5,12 +5,11 @@ read it).  ``crazyflie``: a Crazyflie 2.x class vehicle (27 g) from public sourc
 number and where it comes from is in :data:`CRAZYFLIE_SOURCES` and docs/paper-notes.md.
 Both keep the paper's ``instant`` rate model, so the env's observation, the presets and the
 controllers apply unchanged; the torque-model fields are the vehicle's own, for
-``--task.quad.rate-model first_order|torque``.
+``--task.vehicle.quad.rate-model first_order|torque``.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 from ttd3_jax.sim.config import EnvConfig
@@ -78,9 +77,9 @@ def with_vehicle(cfg: EnvConfig, name: str) -> EnvConfig:
     """``cfg`` flying vehicle ``name``.  Refuses a ``cfg`` with ``thrust_map_mass`` set (a
     mass pinned for another vehicle's action map)."""
     quad = vehicle(name)
-    if cfg.thrust_map_mass is not None:
+    if cfg.vehicle.thrust_map_mass is not None:
         raise ValueError(
-            f"with_vehicle({name!r}): cfg.thrust_map_mass={cfg.thrust_map_mass} pins another vehicle's "
-            "action map; allowed: thrust_map_mass None"
+            f"with_vehicle({name!r}): cfg.vehicle.thrust_map_mass={cfg.vehicle.thrust_map_mass} pins another "
+            "vehicle's action map; allowed: thrust_map_mass None"
         )
-    return dataclasses.replace(cfg, quad=quad)
+    return cfg.replace(quad=quad)

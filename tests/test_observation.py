@@ -1,0 +1,65 @@
+"""The named observation layout (ttd3_jax.sim.observation): it builds the env's observation,
+covers it exactly once, and names the parts only the critics see."""
+
+import dataclasses
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ttd3_jax.sim import observation
+from ttd3_jax.sim.config import make_config
+from ttd3_jax.sim.dynamics import QuadParams
+from ttd3_jax.sim.env import TrackingEnv
+
+CASES = [
+    dict(obs_frame=frame, obs_memory=mem, obs_privileged=priv, quad=QuadParams.create(rate_model=model))
+    for frame, mem, priv, model in itertools.product(
+        ("world", "track"), (False, True), (False, True), ("instant", "first_order")
+    )
+]
+
+
+@pytest.mark.parametrize("overrides", CASES, ids=lambda o: "-".join(str(v)[:8] for v in o.values()))
+def test_the_parts_cover_the_observation_exactly_once(overrides):
+    cfg = make_config("practical", **overrides)
+    lay = observation.layout(cfg)
+    covered = np.zeros(lay.size, int)
+    for part in lay.parts:
+        covered[lay.slice(part.name)] += 1
+        assert lay.slice(part.name).stop - lay.slice(part.name).start == part.size == len(part.entries)
+    assert (covered == 1).all() and len(lay.names) == lay.size == len(set(lay.names))
+    env = TrackingEnv(cfg)
+    assert env.observation_size == lay.size and env.actor_observation_size == lay.actor_size
+    assert env.reset(jax.random.PRNGKey(0)).obs.shape == (lay.size,)
+    only = [p.name for p in lay.parts if p.critic_only]
+    assert lay.critic_only == tuple(only) and bool(only) == cfg.observation.obs_privileged
+    assert all(lay.slice(name).start >= lay.actor_size for name in only)  # the actor reads a prefix
+    assert lay.has("omega") == (cfg.vehicle.quad.rate_model != "instant")
+
+
+def test_the_observation_is_the_layouts_parts_in_order():
+    cfg = make_config("paper", quad=QuadParams.create(rate_model="first_order"))
+    env = TrackingEnv(cfg)
+    s = env.step(env.reset(jax.random.PRNGKey(1)), jnp.array([0.3, 0.2, -0.1, 0.4]))
+    lay, ps = env.layout, s.pipeline_state
+    np.testing.assert_array_equal(s.obs[lay.slice("p")], ps.quad.p)
+    np.testing.assert_array_equal(s.obs[lay.slice("v")], ps.quad.v)
+    np.testing.assert_array_equal(s.obs[lay.slice("omega")], ps.quad.w)
+    assert lay.names[:3] == ["p.x", "p.y", "p.z"] and lay.names[-3:] == ["omega.x", "omega.y", "omega.z"]
+    assert [d["start"] for d in lay.describe()] == [0, 3, 6, 10, 13, 16, 17]
+
+
+def test_a_layout_refuses_parts_that_do_not_match_it():
+    lay = observation.layout(make_config("paper"))
+    with pytest.raises(ValueError, match="do not match the layout"):
+        lay.build({"p": jnp.zeros(3)}, jnp.concatenate)
+    with pytest.raises(KeyError, match="wind"):
+        lay.slice("wind")
+    late = observation.Part("wind", ("w",), "m/s^2", critic_only=True)
+    with pytest.raises(ValueError, match="critics-only parts must come last"):
+        observation.ObsLayout((late, *lay.parts))
+    with pytest.raises(ValueError, match="unique"):
+        observation.ObsLayout((*lay.parts, dataclasses.replace(lay.parts[0])))
