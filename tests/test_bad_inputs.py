@@ -155,6 +155,10 @@ def test_the_migration_knows_only_the_fields_added_later():
     assert sp.from_dict(one) == tiny()  # n_step came with format 2: a format-1 file gets 1
     with pytest.raises(ValueError, match='"train.n_step" is missing'):
         sp.from_dict({**one, "format": sp.CONFIG_FORMAT})
+    two = {**d, "format": 2, "train": {k: v for k, v in d["train"].items() if k != "advantage_dt"}}
+    assert sp.from_dict(two) == tiny()  # advantage_dt came with format 3: a format-2 file gets 0
+    with pytest.raises(ValueError, match='"train.advantage_dt" is missing'):
+        sp.from_dict({**two, "format": sp.CONFIG_FORMAT})
     legacy["task"].pop("lookahead_k")
     with pytest.raises(ValueError, match='field "task.lookahead_k" is missing'):
         sp.from_dict(legacy)  # no history: refused

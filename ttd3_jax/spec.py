@@ -22,7 +22,7 @@ from ttd3_jax.td3.trainer import Trainer, make_trainer
 QUADROTOR = "quadrotor"
 PRESETS = ("fast", "fast_dpg", "fast_model_free", "paper", "mujoco")
 SEED_LIMIT = 2**32  # seeds are uint32 PRNG keys: seed + num_seeds - 1 must stay below this
-CONFIG_FORMAT = 2  # config.json's "format"; files without one were written before it (format 0)
+CONFIG_FORMAT = 3  # config.json's "format"; files without one were written before it (format 0)
 # Fields added to the run spec after runs were first saved (2026-11-22): for each, the first
 # format whose files hold it, and the value that reproduces what a run saved before it did.
 ADDED_FIELDS = {
@@ -35,6 +35,7 @@ ADDED_FIELDS = {
     ("task", "train_tracks"): (1, []),  # 2026-12-03: users' tracks in the training mixture
     ("task", "train_tracks_weight"): (1, 0.25),
     ("train", "n_step"): (2, 1),  # 2026-12-05: n-step returns
+    ("train", "advantage_dt"): (3, 0.0),  # 2026-12-05: deep advantage updating
 }
 
 
