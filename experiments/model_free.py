@@ -108,6 +108,24 @@ DIRECTIONS = {
         {"n_step": 3},
         {},
     ),
+    "advantage": (
+        "deep advantage updating (Tallec et al. 2019): critics V(s) + δ A(s, a), A(s, π(s)) = 0, δ = 10 ms",
+        {},
+        {"advantage_dt": 0.01},
+        {},
+    ),
+    "advantage_1khz": (
+        "advantage at 1 kHz (δ = 1 ms): γ^0.1, learning rates and τ x 0.1 (the 100 Hz run's, per second)",
+        {"action_repeat": 1},
+        {"advantage_dt": 0.01},
+        {},
+    ),
+    "fast_dpg_1khz_per_second": (
+        "fast_dpg_1khz with advantage_1khz's γ^0.1, learning rates and τ x 0.1, Q critics: its control",
+        {"action_repeat": 1},
+        {},
+        {"gamma": 0.99**0.1, "lr_actor": 3e-5, "lr_critic": 3e-5, "tau": 1 - 0.995**0.1},
+    ),
     "gamma_0.95": (
         "discount 0.95 (0.2 s horizon at 10 ms): a smaller Q, its fitting error smaller beside an action",
         {},

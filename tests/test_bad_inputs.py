@@ -185,6 +185,12 @@ def test_the_migration_knows_only_the_fields_added_later():
     assert sp.from_dict(one) == tiny()  # n_step came with format 2: a format-1 file gets 1
     with pytest.raises(ValueError, match='"train.n_step" is missing'):
         sp.from_dict({**one, "format": 2})
+    two = {**d, "train": {k: v for k, v in d["train"].items() if k != "advantage_dt"}}
+    assert sp.from_dict(two) == tiny()  # advantage_dt came with format 3: a format-2 file gets 0
+    three = json.loads(json.dumps(sp.to_dict(tiny())))
+    three["train"].pop("advantage_dt")
+    with pytest.raises(ValueError, match='"train.advantage_dt" is missing'):
+        sp.from_dict(three)
     legacy["task"].pop("lookahead_k")
     with pytest.raises(ValueError, match='field "task.observation.lookahead_k" is missing'):
         sp.from_dict(legacy)  # no history: refused

@@ -37,6 +37,7 @@ ADDED_FIELDS = {
     ("task", "train_tracks"): (1, []),  # 2026-12-03: users' tracks in the training mixture
     ("task", "train_tracks_weight"): (1, 0.25),
     ("train", "n_step"): (2, 1),  # 2026-12-05: n-step returns
+    ("train", "advantage_dt"): (3, 0.0),  # 2026-12-05: deep advantage updating
 }
 
 

@@ -27,7 +27,7 @@ from ttd3_jax.td3 import networks as nn
 from ttd3_jax.td3 import noise as nz
 from ttd3_jax.td3.config import Hyper, TrainConfig
 from ttd3_jax.td3.env_spec import EnvSpec
-from ttd3_jax.td3.losses import actor_loss, critic_loss
+from ttd3_jax.td3.losses import actor_loss, advantage_actor_loss, advantage_critic_loss, critic_loss
 
 
 @struct.dataclass
@@ -141,6 +141,33 @@ def polyak(ts: TrainState, hp: Hyper) -> TrainState:
     )
 
 
+def step_hyper(s: Setup, hp: Hyper) -> Hyper:
+    """Deep advantage updating's hyperparameters at the env's control step δ: ``hp``'s per-step
+    γ, learning rates and τ hold at ``advantage_dt`` s; at δ they are γ^ρ, lr ρ and
+    1 − (1 − τ)^ρ, ρ = δ / ``advantage_dt`` (the same horizon, and the same parameter motion
+    per second of experience, as at ``advantage_dt``).  The reward needs no factor: the env's
+    reward of one step already integrates over its δ s."""
+    rho = s.nets.dt / s.config.advantage_dt
+    return hp.replace(gamma=hp.gamma**rho, lr_actor=hp.lr_actor * rho, lr_critic=hp.lr_critic * rho,
+                      tau=1.0 - (1.0 - hp.tau) ** rho)  # fmt: skip
+
+
+def critic_grad(s: Setup, ts: TrainState, hp: Hyper, batch: rb.Transition, key: jax.Array, discount):
+    """``((loss, mean Q_1), gradient)`` of the twin critics on ``batch``: TD3's loss, or deep
+    advantage updating's with ``advantage_dt`` > 0."""
+    stats = obs_stats(s, ts)
+    if s.config.advantage:
+        grad = jax.value_and_grad(advantage_critic_loss, has_aux=True)
+        return grad(ts.critic, nets=s.nets, actor=ts.actor, target_critic=ts.target_critic, stats=stats,
+                    batch=batch, hp=hp, discount=discount)  # fmt: skip
+    target_std = exploration_std(s, ts) if s.config.target_noise == "shared_sigma" else hp.target_sigma
+    grad = jax.value_and_grad(critic_loss, has_aux=True)
+    return grad(
+        ts.critic, nets=s.nets, target_actor=ts.target_actor, target_critic=ts.target_critic,
+        stats=stats, batch=batch, key=key, hp=hp, target_std=target_std, discount=discount,
+    )  # fmt: skip
+
+
 def critic_update(s: Setup, ts: TrainState, hp: Hyper, key: jax.Array):
     """One twin-critic step on a fresh minibatch (n-step returns with ``n_step`` > 1) and the
     σ update after it (on the rows' one-step rewards); returns ``(ts, batch, loss, mean Q_1)``."""
@@ -152,12 +179,7 @@ def critic_update(s: Setup, ts: TrainState, hp: Hyper, key: jax.Array):
     else:
         batch = rb.sample(ts.buffer, k_batch, c.batch_size)
         discount, rewards = None, batch.reward
-    target_std = exploration_std(s, ts) if c.target_noise == "shared_sigma" else hp.target_sigma
-    grad = jax.value_and_grad(critic_loss, has_aux=True)
-    (loss, q_mean), g = grad(
-        ts.critic, nets=s.nets, target_actor=ts.target_actor, target_critic=ts.target_critic,
-        stats=obs_stats(s, ts), batch=batch, key=k_target, hp=hp, target_std=target_std, discount=discount,
-    )  # fmt: skip
+    (loss, q_mean), g = critic_grad(s, ts, hp, batch, k_target, discount)
     critic, critic_opt = adam_step(s, ts.critic, ts.critic_opt, g, hp.lr_critic)
     n_upd = ts.n_upd + 1
     noise = nz.update(ts.noise, cfg=c.noise, time_attenuating=c.time_attenuating, hp=hp, rewards=rewards,
@@ -176,7 +198,7 @@ def delay_due(c: TrainConfig, ts: TrainState, j: jax.Array) -> jax.Array:
 
 def actor_update(s: Setup, ts: TrainState, hp: Hyper, batch: rb.Transition):
     """One actor step along ∂Q₁/∂a and the target update; returns ``(ts, loss)``."""
-    grad = jax.value_and_grad(actor_loss)
+    grad = jax.value_and_grad(advantage_actor_loss if s.config.advantage else actor_loss)
     loss, g = grad(ts.actor, nets=s.nets, critic=ts.critic, stats=obs_stats(s, ts), obs=batch.obs)
     actor, actor_opt = adam_step(s, ts.actor, ts.actor_opt, g, hp.lr_actor)
     return polyak(ts.replace(actor=actor, actor_opt=actor_opt), hp), loss
@@ -195,6 +217,7 @@ def vector_step(s: Setup, ts: TrainState, hp: Hyper):
     """One env step of all envs under the noisy policy, then G updates; returns the state
     and ``(StepMetrics, Finished)``."""
     c = s.config
+    hp = step_hyper(s, hp) if c.advantage else hp
     key, k_noise, k_reset, k_upd = jax.random.split(ts.key, 4)
     a = nn.policy(s.nets, ts.actor, obs_stats(s, ts), ts.env_state.obs)
     a = a + exploration_std(s, ts) * jax.random.normal(k_noise, (c.num_envs, s.env.action_size))

@@ -22,3 +22,4 @@ class EnvSpec(NamedTuple):
     evaluate: Callable[[Callable], dict]  # policy (obs -> action) -> metrics (pure; jit it)
     differentiable: bool  # whether gradients flow through env.step (model_horizon > 0)
     actor_obs_size: int  # the leading observation entries the actor reads (the critics read all)
+    control_dt: float = 0.0  # s per env step (deep advantage updating's δ); 0: not known

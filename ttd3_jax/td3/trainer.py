@@ -32,7 +32,10 @@ StepFn = Callable[[Setup, TrainState, Hyper], tuple]  # (s, ts, hp) -> (ts, (Ste
 def make_setup(c: TrainConfig, env: EnvSpec) -> Setup:
     adam = optax.inject_hyperparams(optax.adam)(learning_rate=0.0)
     actor_in = env.actor_obs_size if env.actor_obs_size != env.obs_size else None
-    return Setup(c, env, nn.make_networks(env.action_size, c.hidden, c.critic_arch, actor_in), adam)
+    if c.advantage and not env.control_dt > 0:
+        raise ValueError("advantage_dt > 0 needs an env whose EnvSpec.control_dt (its step in s) is known")
+    dt = env.control_dt if c.advantage else 0.0
+    return Setup(c, env, nn.make_networks(env.action_size, c.hidden, c.critic_arch, actor_in, dt), adam)
 
 
 def act(s: Setup, actor, stats: nn.ObsStats | None, obs: jax.Array) -> jax.Array:
