@@ -18,8 +18,14 @@ from ttd3_jax.td3.config import Hyper
 
 
 def _changed(a, b) -> set[str]:
-    """The fields in which two dataclasses of one kind differ."""
-    return {f.name for f in dataclasses.fields(a) if getattr(a, f.name) != getattr(b, f.name)}
+    """The fields in which two dataclasses of one kind differ (those of nested groups by
+    their own names, as ``EnvConfig.replace`` takes them)."""
+    out = set()
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if x != y:
+            out |= _changed(x, y) if dataclasses.is_dataclass(x) and type(x) is type(y) else {f.name}
+    return out
 
 
 def test_the_presets_differ_where_their_docs_say():
