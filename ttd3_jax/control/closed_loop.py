@@ -17,7 +17,13 @@ from ttd3_jax.sim import observation
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.dynamics import QuadState
-from ttd3_jax.sim.env import TrackingEnv, action_to_control, control_to_action, hover_action
+from ttd3_jax.sim.env import (
+    TrackingEnv,
+    action_to_control,
+    control_to_action,
+    hover_action,
+    last_applied_action,
+)
 
 
 class Controller(NamedTuple):
@@ -65,7 +71,7 @@ class Rollout:
 
     pos: jax.Array  # (T, 3) m, position after step i
     ref: jax.Array  # (T, 3) m, reference at the same time
-    action: jax.Array  # (T, 4) applied normalised action
+    action: jax.Array  # (T, 4) applied normalised action (of the step's last physics step)
     error_sum: jax.Array  # (T,) m, Σ ||e|| over the physics steps of control step i
     crashed: jax.Array  # (T,) 1.0 once the tracking error exceeded e_max or went non-finite
     vel: jax.Array  # (T, 3) m/s, velocity after step i (world frame)
@@ -79,8 +85,9 @@ def closed_loop(env: TrackingEnv, controller: Controller, state) -> Rollout:
     def body(carry, _):
         s, ctrl = carry
         a, ctrl = controller.act(ctrl, s)
-        # the action the env applies now: the previous one under ``action_delay = 1``
-        applied = s.pipeline_state.prev_action if c.disturbances.action_delay else jnp.clip(a, -1.0, 1.0)
+        # the action the env's last physics step of this control step applies: the previous one
+        # under ``action_delay = 1``, the one the latency picks under domain randomisation
+        applied = last_applied_action(c, s.pipeline_state, a)
         s = env.step(s, a)
         ps, m = s.pipeline_state, s.metrics
         ref = tr.position(ps.track, ps.k, c.dt)

@@ -22,7 +22,14 @@ PRIVILEGED_AHEAD_S = (0.5, 1.0)  # s after p_d,k+L of the critics' extra referen
 CRASH_GAMMA = 0.99  # the discount the derived crash penalty is sized for (spec R4)
 # the fields EnvConfig.for_eval sets, and the episode length it keeps (keep them together)
 EVAL_PROTOCOL_FIELDS = ("track", "los_seed", "randomize_init", "terminate", "wind_sigma", "e_max",
-                        "obs_noise_pos", "obs_noise_vel", "obs_noise_quat", "episode_steps")  # fmt: skip
+                        "obs_noise_pos", "obs_noise_vel", "obs_noise_quat", "episode_steps",
+                        "mass", "inertia", "thrust_max", "thrust_gain", "tau_rate", "rate_limit", "latency",
+                        "obs_noise", "pos_bias", "wind_mean")  # fmt: skip
+LATENCY_MAX_S = 0.05  # s: the largest actuation latency randomization.latency may draw
+# the plant's ranges of RandomizationConfig (lo, hi) and their neutral value (the nominal plant)
+PLANT_FACTORS = ("mass", "inertia", "thrust_max", "thrust_gain", "tau_rate", "rate_limit")
+PLANT_NEUTRAL = {**dict.fromkeys(PLANT_FACTORS, (1.0, 1.0)), "latency": (0.0, 0.0), "obs_noise": (1.0, 1.0),
+                 "pos_bias": 0.0, "wind_mean": 0.0}  # fmt: skip
 DT_MAX = 0.01  # s: the physics step the integrator is used with at most (the body-rate lag is 0.03 s)
 EVAL_CRASH_M = 1.0  # m: every controller is judged crashed once its error exceeds this in evaluation
 
@@ -153,19 +160,49 @@ class DisturbancesConfig:
 
 @dataclasses.dataclass(frozen=True)
 class RandomizationConfig:
-    """What each training episode draws (R5): the initial state around the track's start."""
+    """What each training episode draws (R5): the initial state around the track's start, and
+    the plant (domain randomisation, ``sim.randomization``).  A range ``(lo, hi)`` is drawn
+    uniformly per episode; ``lo == hi`` fixes the value; the defaults are the nominal plant.
+    Factors multiply the config's (or the given) vehicle's value; the action map stays the
+    nominal vehicle's, so a controller does not learn of the draw through it."""
 
     randomize_init: bool = True
     init_pos: float = 0.1  # m, ± per axis around p_d(0)
     init_vel: float = 0.2  # m/s, ± per axis
     init_tilt_deg: float = 10.0  # deg, max tilt about a random horizontal axis
     init_yaw_deg: float = 15.0  # deg, ± yaw
+    mass: tuple[float, float] = (1.0, 1.0)  # factor on quad.mass
+    inertia: tuple[float, float] = (1.0, 1.0)  # factor on each axis of quad.inertia (drawn per axis)
+    thrust_max: tuple[float, float] = (1.0, 1.0)  # factor on quad.thrust_max (the flown vehicle's limit)
+    thrust_gain: tuple[float, float] = (1.0, 1.0)  # thrust produced / thrust commanded (thrust-map error)
+    tau_rate: tuple[float, float] = (1.0, 1.0)  # factor on quad.tau_rate (an "instant" vehicle then
+    #   flies the first_order rate model with that time constant; its observation stays as it was)
+    rate_limit: tuple[float, float] = (1.0, 1.0)  # factor on the body-rate limits rate_min, rate_max
+    latency: tuple[float, float] = (0.0, 0.0)  # s, actuation latency, whole physics steps (round(x/dt))
+    obs_noise: tuple[float, float] = (1.0, 1.0)  # factor on disturbances.obs_noise_* (the stds)
+    pos_bias: float = 0.0  # m, ± per axis: a constant bias of the observed position
+    wind_mean: float = 0.0  # m/s², ± per axis: a constant wind acceleration added to the OU wind
 
     def __post_init__(self):
         f = lambda name: _where("randomization", name)  # noqa: E731
         checks.boolean(f("randomize_init"), self.randomize_init)
-        for name in ("init_pos", "init_vel", "init_tilt_deg", "init_yaw_deg"):
+        for name in ("init_pos", "init_vel", "init_tilt_deg", "init_yaw_deg", "pos_bias", "wind_mean"):
             checks.number(f(name), getattr(self, name), 0)
+        for name in PLANT_FACTORS:
+            _range(f(name), getattr(self, name), 0, None, lo_open=True)
+        _range(f("obs_noise"), self.obs_noise, 0, None)
+        _range(f("latency"), self.latency, 0, LATENCY_MAX_S, unit=" s (LATENCY_MAX_S)")
+
+
+def _range(field: str, v, lo: float, hi: float | None, *, lo_open: bool = False, unit: str = "") -> None:
+    """``v`` a range ``(lo, hi)``: 2 finite numbers within the bounds, the first <= the second."""
+    bounds = checks.interval(lo, hi, lo_open, False)
+    ok = isinstance(v, tuple | list) and len(v) == 2 and all(checks.is_number(x) for x in v)
+    ok = ok and all((x > lo if lo_open else x >= lo) and (hi is None or x <= hi) for x in v)
+    if not ok:
+        checks.fail(field, f"a range (lo, hi) of 2 finite numbers {bounds}{unit}", v)
+    if v[0] > v[1]:
+        checks.fail(field, "a range (lo, hi) with lo <= hi", v)
 
 
 GROUPS = {"vehicle": VehicleConfig, "observation": ObservationConfig, "reward": RewardConfig,
@@ -241,10 +278,11 @@ class EnvConfig:
     def for_eval(self, track: str, los_seed: int = 0, wind_sigma: float = 0.0) -> EnvConfig:
         """The evaluation protocol (spec §2.5): fixed track, start on p_d(0) at rest and
         level, no early termination, no observation noise, optional wind, and one crash
-        threshold for every controller (``e_max = EVAL_CRASH_M``).  It sets the fields in
+        threshold for every controller (``e_max = EVAL_CRASH_M``), and the nominal plant (no
+        domain randomisation: ``PLANT_NEUTRAL``).  It sets the fields in
         ``EVAL_PROTOCOL_FIELDS`` (``episode_steps`` stays: 3000, the paper's)."""
         quiet = dict(randomize_init=False, terminate=False, e_max=EVAL_CRASH_M, obs_noise_pos=0.0,
-                     obs_noise_vel=0.0, obs_noise_quat=0.0)  # fmt: skip
+                     obs_noise_vel=0.0, obs_noise_quat=0.0, **PLANT_NEUTRAL)  # fmt: skip
         return self.replace(track=track, los_seed=los_seed, wind_sigma=wind_sigma, **quiet)
 
 
@@ -300,10 +338,38 @@ def _validate(c: EnvConfig) -> None:
             "EnvConfig.observation.obs_memory needs disturbances.action_delay 0 (the delayed env keeps "
             "its own last action)"
         )
+    _validate_plant(c)
     if c.episode_steps % c.action_repeat:
         raise ValueError(
             f"EnvConfig.episode_steps ({c.episode_steps}) must be a multiple of action_repeat "
             f"({c.action_repeat})"
+        )
+
+
+def plant_is_nominal(r: RandomizationConfig) -> bool:
+    """True when every range of the plant is at its neutral value (no domain randomisation)."""
+    same = lambda v, n: tuple(v) == n if isinstance(n, tuple) else v == n  # noqa: E731
+    return all(same(getattr(r, k), n) for k, n in PLANT_NEUTRAL.items())
+
+
+def _validate_plant(c: EnvConfig) -> None:
+    """The checks of the randomised plant across groups: the flown vehicle must hover."""
+    r, q = c.randomization, c.vehicle.quad
+    if tuple(r.tau_rate) != PLANT_NEUTRAL["tau_rate"] and q.rate_model == "torque":
+        checks.fail("EnvConfig.randomization.tau_rate", "(1.0, 1.0) with rate_model 'torque' (which has no "
+                    "time constant; randomise inertia)", r.tau_rate)  # fmt: skip
+    # the most thrust the flown vehicle gives: the action map's maximum times the gain, up to
+    # its own (randomised) limit; hover needs the heaviest draw's weight (newton units)
+    most = q.thrust_max * min(r.thrust_gain[0], r.thrust_max[0])
+    hover = q.hover_thrust * (r.mass[1] if q.thrust_units == "newton" else 1.0)
+    if plant_is_nominal(r):
+        return  # the vehicle's own check holds
+    if most <= hover:
+        raise ValueError(
+            f"EnvConfig.randomization.mass, thrust_max, thrust_gain must let every drawn vehicle hover: "
+            f"quad.thrust_max x min(thrust_gain lo, thrust_max lo) = {most:.3f} must be > hover thrust x "
+            f"mass hi = {hover:.3f}, got mass={r.mass}, thrust_max={r.thrust_max}, "
+            f"thrust_gain={r.thrust_gain}"
         )
 
 

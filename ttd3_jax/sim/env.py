@@ -38,9 +38,17 @@ with contextlib.redirect_stdout(io.StringIO()):
 
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import observation, rng
+from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import PRIVILEGED_AHEAD_S, EnvConfig, make_config
-from ttd3_jax.sim.dynamics import QuadParams, QuadState, quat_from_axis_angle, quat_mul, rk4_step
+from ttd3_jax.sim.dynamics import (
+    QuadParams,
+    QuadState,
+    clip_control,
+    quat_from_axis_angle,
+    quat_mul,
+    rk4_step,
+)
 
 _USER_TAG = 0x05E7  # folded into a reset's track key to pick users' training tracks
 
@@ -128,6 +136,39 @@ class MemoryTrackingState(TrackingState):
     err_int: jax.Array  # (3,) m·s, leaky ∫(p_d − p) dt
 
 
+@struct.dataclass
+class RandomizedTrackingState(TrackingState):
+    """The state of an env with domain randomisation (``sim.randomization.active``): the
+    episode's plant, the commands still in flight, and the memory parts (a subclass, like
+    the others, so that an env without randomisation keeps its layout)."""
+
+    plant: rz.Plant
+    pending: jax.Array  # (M, 4) the last M commanded actions, newest first (hover at reset)
+    last_action: jax.Array  # (4,) the action the last step commanded (zeros at reset)
+    err_int: jax.Array  # (3,) m·s, leaky ∫(p_d − p) dt (obs_memory)
+
+
+def commanded_lags(cfg: EnvConfig, latency: jax.Array) -> jax.Array:
+    """(action_repeat,) int: for each physics substep j of a control step, how many control
+    steps ago the command it applies was given, ceil((latency − j) / action_repeat) >= 0."""
+    r = cfg.action_repeat
+    j = jnp.arange(r, dtype=jnp.int32)
+    return jnp.clip((latency - j + r - 1) // r, 0, rz.pending_size(cfg))
+
+
+def last_applied_action(cfg: EnvConfig, ps: TrackingState, a: jax.Array) -> jax.Array:
+    """The normalised action that the last physics step of the next control step applies,
+    when ``a`` (4,) is commanded from state ``ps``: ``a`` clipped, the previous one under
+    ``action_delay``, or the one the randomised plant's latency picks."""
+    a = jnp.clip(a, -1.0, 1.0)
+    if isinstance(ps, RandomizedTrackingState):
+        stack = jnp.concatenate([a[None].astype(ps.pending.dtype), ps.pending])
+        return stack[commanded_lags(cfg, ps.plant.latency)[-1]]
+    if cfg.disturbances.action_delay:
+        return ps.prev_action
+    return a
+
+
 class TrackingEnv(Env):
     """Quadrotor trajectory tracking; ``reset(rng) -> State``, ``step(state, a) -> State``.
 
@@ -152,6 +193,7 @@ class TrackingEnv(Env):
             self._user = jax.tree.map(lambda *x: jnp.stack(x), *(ct.pad(t, self._n_seg, c.dt) for t in user))
         self._effort_w = tuple(float(w) for w in c.reward.effort_weights)
         self.layout = observation.layout(c)  # the named parts of the observation
+        self._randomized = rz.active(c)  # static: domain randomisation (RandomizedTrackingState)
 
     # the Brax Env interface; dt is seconds per env step, num_segments the static track-table size
     actor_observation_size = property(lambda self: self.layout.actor_size)
@@ -205,7 +247,11 @@ class TrackingEnv(Env):
             wind = c.disturbances.wind_sigma * jax.random.normal(k_wind, (3,), f)
         fields = dict(quad=quad, k=jnp.zeros((), jnp.int32), track=track, wind=wind, key=k_next)
         fields["ref_next"] = jnp.zeros(3, f)
-        if c.disturbances.action_delay:
+        if self._randomized:  # the plant, drawn around ``vehicle`` (a key folded off rng's other draws)
+            pending = jnp.broadcast_to(hover_action(c).astype(f), (rz.pending_size(c), 4))
+            ps = RandomizedTrackingState(**fields, plant=rz.draw(c, rng, vehicle, f), pending=pending,
+                                         last_action=jnp.zeros(4, f), err_int=jnp.zeros(3, f))  # fmt: skip
+        elif c.disturbances.action_delay:
             ps = DelayedTrackingState(**fields, prev_action=hover_action(c).astype(f))
         elif c.observation.obs_memory:
             ps = MemoryTrackingState(**fields, last_action=jnp.zeros(4, f), err_int=jnp.zeros(3, f))
@@ -225,6 +271,8 @@ class TrackingEnv(Env):
         c = self.config
         ps = state.pipeline_state
         a = jnp.clip(action, -1.0, 1.0).astype(ps.quad.p.dtype)
+        if self._randomized:
+            return self._step_randomized(state, a)
         if c.disturbances.action_delay:
             a, ps = ps.prev_action, ps.replace(prev_action=a)
         u = action_to_control(c, a)  # the action map of the config's (nominal) vehicle
@@ -239,11 +287,45 @@ class TrackingEnv(Env):
                 lambda cr, _: self._substep(quad, ps.track, u, effort, cr), carry, None, c.action_repeat
             )
             p_ref = p_refs[-1]
+        return self._finish(state, ps, a, carry, p_ref)
+
+    def _step_randomized(self, state: State, a: jax.Array) -> State:
+        """:meth:`step` of the randomised plant: the nominal action map, then the plant's
+        thrust gain and box, the latency's choice of command per physics step, its wind."""
+        c = self.config
+        ps = state.pipeline_state
+        plant, m = ps.plant, rz.pending_size(c)
+        if m:  # substep j applies the command given commanded_lags[j] control steps ago
+            stack = jnp.concatenate([a[None], ps.pending])
+            u = action_to_control(c, stack[commanded_lags(c, plant.latency)])  # (R, 4)
+            ps = ps.replace(pending=stack[:m])
+        else:
+            u = jnp.broadcast_to(action_to_control(c, a), (c.action_repeat, 4))
+        u = clip_control(plant.quad, u.at[:, 0].multiply(plant.thrust_gain))
+        effort = self._effort(a)  # of the commanded action
+        zero = jnp.zeros((), ps.quad.p.dtype)
+        carry = (ps.quad, ps.k, ps.wind, ps.key, zero, zero, jnp.zeros((), bool))
+        wind_mean = plant.wind_mean if c.randomization.wind_mean > 0 else None
+        if c.action_repeat == 1:
+            carry, p_ref = self._substep(plant.quad, ps.track, u[0], effort, carry, ps.ref_next, wind_mean)
+        else:
+            carry, p_refs = jax.lax.scan(
+                lambda cr, uj: self._substep(plant.quad, ps.track, uj, effort, cr, None, wind_mean), carry, u
+            )
+            p_ref = p_refs[-1]
+        return self._finish(state, ps, a, carry, p_ref)
+
+    def _finish(self, state: State, ps: TrackingState, a: jax.Array, carry, p_ref) -> State:
+        """The end of a step: termination, memory, observation, metrics (``a``: the action
+        the step applied, the commanded one under randomisation)."""
+        c = self.config
         quad, k, wind, key, reward, err_sum, crashed = carry
         terminated = crashed if c.reward.terminate else jnp.zeros((), bool)
         reward = reward - c.crash_cost * terminated
         truncated = (k >= c.episode_steps) & ~terminated
         ps = ps.replace(quad=quad, k=k, wind=wind, key=key)
+        if self._randomized:
+            ps = ps.replace(last_action=a)
         if c.observation.obs_memory:
             leak = math.exp(-c.control_dt / c.observation.memory_tau)
             err_int = leak * ps.err_int + c.control_dt * _zero_non_finite(p_ref - quad.p)
@@ -258,21 +340,25 @@ class TrackingEnv(Env):
         done = (terminated | truncated).astype(f)
         return state.replace(pipeline_state=ps, obs=obs, reward=reward, done=done, metrics=metrics, info=info)
 
-    def _substep(self, params, track, u, effort, carry, p_ref=None):
+    def _substep(self, params, track, u, effort, carry, p_ref=None, wind_mean=None):
         """One physics step of ``dt`` of vehicle ``params``: wind, RK4, tracking error, reward, crash flag.
 
         ``carry = (quad, k, wind, key, reward, err_sum, crashed)``; ``p_ref`` may pass
-        p_d(k+1) when it is already known.  Returns the new carry and p_d(k+1)."""
+        p_d(k+1) when it is already known; ``wind_mean`` (3,) m/s² is added to the OU wind.
+        Returns the new carry and p_d(k+1)."""
         c = self.config
         quad, k, wind, key, reward, err_sum, crashed = carry
         if c.disturbances.wind_sigma > 0:
             wind, key = ou_wind_step(c, wind, key)
+        accel = wind if c.disturbances.wind_sigma > 0 else None
+        if wind_mean is not None:
+            accel = wind_mean if accel is None else accel + wind_mean
         quad = rk4_step(
             params,
             quad,
             u,
             c.dt,
-            wind if c.disturbances.wind_sigma > 0 else None,
+            accel,
             substeps=c.vehicle.rk4_substeps,
             renormalize=c.vehicle.renormalize,
         )
@@ -327,11 +413,14 @@ class TrackingEnv(Env):
             # they change the last bit of a few observations (tests/test_rng.py), and this runs
             # once per env step (robustness evaluation), not once per physics step
             key, kp, kv, kq = jax.random.split(ps.key, 4)
-            p = p + c.disturbances.obs_noise_pos * jax.random.normal(kp, (3,), p.dtype)
-            v = v + c.disturbances.obs_noise_vel * jax.random.normal(kv, (3,), p.dtype)
-            q = q + c.disturbances.obs_noise_quat * jax.random.normal(kq, (4,), p.dtype)
+            scale = ps.plant.noise_scale if self._randomized else 1.0  # (a Python 1.0: the same program)
+            p = p + scale * c.disturbances.obs_noise_pos * jax.random.normal(kp, (3,), p.dtype)
+            v = v + scale * c.disturbances.obs_noise_vel * jax.random.normal(kv, (3,), p.dtype)
+            q = q + scale * c.disturbances.obs_noise_quat * jax.random.normal(kq, (4,), p.dtype)
             q = q / jnp.linalg.norm(q)
             ps = ps.replace(key=key)
+        if self._randomized and c.randomization.pos_bias > 0:
+            p = p + ps.plant.pos_bias  # the observed position's bias (before the track-frame shift)
         if c.observation.canonical_q_obs:
             q = jnp.where(q[0] < 0, -q, q)
         p_ahead = tr.position(ps.track, ps.k + c.observation.lookahead_k, c.dt)
@@ -353,7 +442,8 @@ class TrackingEnv(Env):
         if c.observation.obs_memory:
             parts.update(last_action=ps.last_action, error_integral=ps.err_int)
         if c.observation.obs_privileged:
-            parts["wind"] = ps.wind
+            wind_mean = self._randomized and c.randomization.wind_mean > 0
+            parts["wind"] = ps.wind + ps.plant.wind_mean if wind_mean else ps.wind
             for t in PRIVILEGED_AHEAD_S:
                 k = ps.k + c.observation.lookahead_k + round(t / c.dt)
                 parts[f"p_ahead_{t:g}s"] = tr.position(ps.track, k, c.dt) - p_ahead

@@ -1,0 +1,121 @@
+"""Domain randomisation: what an episode draws about the plant it flies.
+
+A :class:`Plant` is the vehicle flown and the errors around it that the controller does not
+see: the thrust-map error, the actuation latency, the observation's noise level and position
+bias, and a constant wind.  :func:`draw` draws one per episode from the ranges of
+:class:`~ttd3_jax.sim.config.RandomizationConfig` (the env's reset does it); :func:`nominal`
+is the plant of the neutral ranges.  The action map always stays that of the config's
+(nominal) vehicle, so that a mass or thrust error is not compensated by the map.
+
+Units: masses, inertias, thrust and rate limits as factors on the given vehicle; latency in
+physics steps of ``dt`` (drawn from seconds, so a 10 ms-control policy and a 1 ms NMPC get the
+same delay); position bias in m; wind in m/s².
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from ttd3_jax.sim.config import EnvConfig, plant_is_nominal
+from ttd3_jax.sim.dynamics import QuadParams
+
+PLANT_TAG = 0x0D12  # folded into a reset's key, so that drawing the plant changes no other draw
+
+
+@struct.dataclass
+class Plant:
+    """One episode's plant (a pytree of arrays; vmap it over envs)."""
+
+    quad: QuadParams  # the vehicle flown (leaves: arrays of the state's float type)
+    thrust_gain: jax.Array  # thrust produced / thrust commanded by the (nominal) action map
+    latency: jax.Array  # int32, physics steps between a command and its application
+    noise_scale: jax.Array  # factor on the disturbances' obs_noise_* stds
+    pos_bias: jax.Array  # (3,) m, added to the observed position
+    wind_mean: jax.Array  # (3,) m/s², added to the OU wind acceleration
+
+
+def active(cfg: EnvConfig) -> bool:
+    """Static: whether any plant range of ``cfg`` differs from its neutral value."""
+    return not plant_is_nominal(cfg.randomization)
+
+
+def latency_steps(cfg: EnvConfig) -> tuple[int, int]:
+    """The latency range in physics steps: round(seconds / dt), plus ``action_delay`` control
+    steps (which the randomised env counts as latency)."""
+    extra = cfg.disturbances.action_delay * cfg.action_repeat
+    lo, hi = cfg.randomization.latency
+    return round(lo / cfg.dt) + extra, round(hi / cfg.dt) + extra
+
+
+def max_latency_steps(cfg: EnvConfig) -> int:
+    """The largest latency an episode of ``cfg`` may draw, in physics steps."""
+    return latency_steps(cfg)[1]
+
+
+def pending_size(cfg: EnvConfig) -> int:
+    """Past control steps' actions the randomised env keeps: ceil(max latency / action_repeat)."""
+    return math.ceil(max_latency_steps(cfg) / cfg.action_repeat)
+
+
+def flown_rate_model(cfg: EnvConfig) -> str:
+    """The flown vehicle's rate model: the config's, except that an ``instant`` vehicle flies
+    ``first_order`` when ``tau_rate`` is randomised (the observation keeps its layout)."""
+    q = cfg.vehicle.quad
+    if q.rate_model == "instant" and tuple(cfg.randomization.tau_rate) != (1.0, 1.0):
+        return "first_order"
+    return q.rate_model
+
+
+def _as_arrays(quad: QuadParams, rate_model: str, dtype) -> QuadParams:
+    quad = jax.tree.map(lambda x: jnp.asarray(x, dtype), quad)
+    return quad.replace(rate_model=rate_model)
+
+
+def nominal(cfg: EnvConfig, quad: QuadParams | None = None, dtype=None) -> Plant:
+    """The plant of the neutral ranges: ``quad`` (None: the config's) as it is, no errors
+    (the latency of ``action_delay`` only)."""
+    dtype = dtype or jnp.zeros(()).dtype
+    quad = cfg.vehicle.quad if quad is None else quad
+    zero3 = jnp.zeros(3, dtype)
+    extra = cfg.disturbances.action_delay * cfg.action_repeat
+    return Plant(quad=_as_arrays(quad, flown_rate_model(cfg), dtype), thrust_gain=jnp.ones((), dtype),
+                 latency=jnp.asarray(extra, jnp.int32), noise_scale=jnp.ones((), dtype), pos_bias=zero3,
+                 wind_mean=zero3)  # fmt: skip
+
+
+def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=None) -> Plant:
+    """A plant drawn from ``cfg.randomization``'s ranges around ``quad`` (None: the config's
+    vehicle), each uniform; ``key`` is folded with :data:`PLANT_TAG` first."""
+    r = cfg.randomization
+    dtype = dtype or jnp.zeros(()).dtype
+    quad = _as_arrays(cfg.vehicle.quad if quad is None else quad, flown_rate_model(cfg), dtype)
+    k = jax.random.split(jax.random.fold_in(key, PLANT_TAG), 10)
+
+    def uni(i, rng, shape=()):
+        lo, hi = rng
+        return lo + (hi - lo) * jax.random.uniform(k[i], shape, dtype)
+
+    rate = uni(4, r.rate_limit)
+    inertia = uni(1, r.inertia, (3,))
+    quad = quad.replace(
+        mass=quad.mass * uni(0, r.mass),
+        inertia=tuple(i * inertia[j] for j, i in enumerate(quad.inertia)),
+        thrust_max=quad.thrust_max * uni(2, r.thrust_max),
+        tau_rate=quad.tau_rate * uni(3, r.tau_rate),
+        rate_min=quad.rate_min * rate,
+        rate_max=quad.rate_max * rate,
+    )
+    lo, hi = latency_steps(cfg)
+    latency = jax.random.randint(k[5], (), lo, hi + 1, jnp.int32)
+    return Plant(
+        quad=quad,
+        thrust_gain=uni(6, r.thrust_gain),
+        latency=latency,
+        noise_scale=uni(7, r.obs_noise),
+        pos_bias=uni(8, (-r.pos_bias, r.pos_bias), (3,)),
+        wind_mean=uni(9, (-r.wind_mean, r.wind_mean), (3,)),
+    )
