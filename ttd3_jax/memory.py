@@ -12,7 +12,7 @@ from typing import NamedTuple
 import jax
 
 from ttd3_jax import spec as sp
-from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim.env import mixture_num_segments, num_validation_tracks
 from ttd3_jax.td3.buffer import transition_bytes
 
 FRACTION = 0.7  # of the free memory a run may plan to use
@@ -62,8 +62,8 @@ def network_bytes(spec: sp.RunSpec, obs_size: int, action_size: int) -> int:
 def track_bytes(spec: sp.RunSpec) -> int:
     """The track tables: one per training env, plus the validation and test tracks."""
     t = spec.task
-    rows = tr.train_num_segments(t.horizon_steps, t.dt)
-    tracks = spec.train.num_envs + tr.NUM_VALIDATION_TRACKS + 2
+    rows = mixture_num_segments(t)
+    tracks = spec.train.num_envs + num_validation_tracks(t) + 2
     return spec.num_seeds * tracks * rows * TRACK_ROW_BYTES
 
 

@@ -26,7 +26,7 @@ CONFIG_FORMAT = 4  # config.json's "format"; files without one were written befo
 GROUPED_TASK = 3  # the first format whose "task" holds EnvConfig's groups (before: flat, sim.config.grouped)
 # Fields added to the run spec after runs were first saved (2026-11-22): for each, the first
 # format whose files hold it, and the value that reproduces what a run saved before it did
-# (task fields by their name: in the flat task of formats 0-2, in their group from format 3).
+# (task fields by their name in EnvConfig's group; migrate puts them in that group).
 ADDED_FIELDS = {
     ("train", "model_horizon"): (1, 0),  # 2026-12-01: the model-based actor update
     ("train", "critic_arch"): (1, "mlp"),  # 2026-12-03: residual critics
@@ -40,6 +40,7 @@ ADDED_FIELDS = {
     ("train", "advantage_dt"): (3, 0.0),  # 2026-12-05: deep advantage updating
     # 2026-12-06: domain randomisation drawn per episode (sim.randomization), neutral: the nominal plant
     **{("task", name): (4, list(v) if isinstance(v, tuple) else v) for name, v in PLANT_NEUTRAL.items()},
+    ("task", "wide_mix"): (4, []),  # issue 37: the wide training mixture
 }
 
 
@@ -187,7 +188,7 @@ def migrate(d) -> dict:
     A file of an earlier format (0: no ``format``, written before 2026-12-04) may lack the
     fields :data:`ADDED_FIELDS` added in later formats, which take the value runs had before
     them; nothing else is filled.  Formats 0-2 hold the task flat: it is grouped by
-    :func:`ttd3_jax.sim.config.grouped`."""
+    :func:`ttd3_jax.sim.config.grouped` first, and task fields are filled in their group."""
     if not isinstance(d, dict):
         raise ValueError(f"run spec: the file must hold a JSON object, got {type(d).__name__}")
     version = d.get("format", 0)
@@ -196,18 +197,24 @@ def migrate(d) -> dict:
         return out
     if version not in range(CONFIG_FORMAT) or isinstance(version, bool):
         raise ValueError(f"run spec: format {version!r} is not one this version reads (0 to {CONFIG_FORMAT})")
-    for (group, name), (since, value) in ADDED_FIELDS.items():
-        if version >= since or not isinstance(out.get(group), dict):
-            continue
-        if group == "task" and version >= GROUPED_TASK:  # the task's groups: into the field's own
-            sub = out["task"].get(FIELD_GROUP[name])
-            if isinstance(sub, dict) and name not in sub:
-                out["task"] = {**out["task"], FIELD_GROUP[name]: {**sub, name: value}}
-        elif name not in out[group]:
-            out[group] = {**out[group], name: value}
     if version < GROUPED_TASK and isinstance(out.get("task"), dict):
         out["task"] = grouped(out["task"])
+    for (part, name), (since, value) in ADDED_FIELDS.items():
+        if version < since:
+            out = _filled(out, part, name, value)
     return out
+
+
+def _filled(d: dict, part: str, name: str, value) -> dict:
+    """``d`` with field ``name`` of ``part`` (``"train"``, or ``"task"``: in the group of
+    ``name``) set to ``value`` where it is missing; a part or group that is not an object is
+    left for :func:`from_dict` to name."""
+    where = d.get(part)
+    if part == "task" and isinstance(where, dict):
+        return {**d, part: _filled(where, FIELD_GROUP[name], name, value)}
+    if isinstance(where, dict) and name not in where:
+        return {**d, part: {**where, name: value}}
+    return d
 
 
 def missing_fields(cls, d: dict, path: str = "") -> list[str]:

@@ -23,6 +23,7 @@ from ttd3_jax.sim.env import (
     control_to_action,
     hover_action,
     last_applied_action,
+    validation_tracks,
 )
 
 
@@ -158,14 +159,15 @@ def evaluate_on_tracks(env: TrackingEnv, controller: Controller, tracks: tr.Trac
 def test_and_validation_metrics(cfg: EnvConfig, controller: Controller) -> dict:
     """What a training run reports each epoch (pure; jit it): the test metrics on Spiral-RT
     and LOS-RT seed 0 (``spiral_*``, ``los_*``), in one vmapped closed loop, and
-    ``val_tracking_error``, the mean Σ‖e‖ over the 10 validation tracks (spec T8), the only
-    figure used to select a policy.  ``controller`` is built for the env of ``cfg``."""
+    ``val_tracking_error``, the mean Σ‖e‖ over the validation tracks (spec T8; the wide
+    mixture's with ``tracks.wide_mix`` set: ``sim.env.validation_tracks``), the only figure
+    used to select a policy.  ``controller`` is built for the env of ``cfg``."""
     env = TrackingEnv(cfg.for_eval("los_rt"))
     m = evaluate_on_tracks(env, controller, test_tracks(env))
     out = {}
     for i, name in enumerate(("spiral", "los")):
         out.update({f"{name}_{k}": v[i] for k, v in m.items()})
     venv = TrackingEnv(cfg.for_eval("validation"))
-    val = tr.validation_tracks(cfg.tracks.generator, cfg.dt, cfg.horizon_steps, venv.num_segments)
+    val = validation_tracks(cfg, venv.num_segments)
     out["val_tracking_error"] = jnp.mean(evaluate_on_tracks(venv, controller, val)["tracking_error"])
     return out

@@ -10,6 +10,7 @@ import math
 import os
 
 from ttd3_jax import checks
+from ttd3_jax.sim import track_families as tf
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.dynamics import QuadParams, validate_params
 
@@ -127,6 +128,10 @@ class TracksConfig:
     # users' tracks in the training mixture (never the test or suite tracks)
     train_tracks: tuple[str, ...] = ()  # CSV files read by sim.custom_tracks.from_csv
     train_tracks_weight: float = 0.25  # probability that a training episode flies one of them
+    # the wide training mixture (issue 37): one weight per family of sim.track_families.FAMILIES
+    # (its WIDE_MIX is a default to start from); () = the paper's mixture (generator.train_mix).
+    # Set, it also picks the validation tracks (track "validation", policy selection)
+    wide_mix: tuple[float, ...] = ()
 
     def __post_init__(self):
         f = lambda name: _where("tracks", name)  # noqa: E731
@@ -137,6 +142,13 @@ class TracksConfig:
             raise ValueError(f"{f('train_tracks')}: {bad!r} is not a file; allowed: CSV track files")
         checks.number(f("train_tracks_weight"), self.train_tracks_weight, 0, 1, lo_open=True)
         checks.instance(f("generator"), self.generator, tr.TrackConfig)
+        if not (isinstance(self.wide_mix, tuple | list) and len(self.wide_mix) == 0):
+            tf.check_weights(f("wide_mix"), self.wide_mix)
+            if self.generator.train_mix != tr.TrackConfig.train_mix:
+                raise ValueError(
+                    f"{f('wide_mix')} replaces generator.train_mix (the paper families' weights are its "
+                    f"first three); allowed: one of them, got train_mix {self.generator.train_mix}"
+                )
 
 
 @dataclasses.dataclass(frozen=True)

@@ -39,6 +39,7 @@ with contextlib.redirect_stdout(io.StringIO()):
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import observation, rng
 from ttd3_jax.sim import randomization as rz
+from ttd3_jax.sim import track_families as tf
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import PRIVILEGED_AHEAD_S, EnvConfig, make_config
 from ttd3_jax.sim.dynamics import (
@@ -106,6 +107,41 @@ def hover_action(cfg: EnvConfig) -> jax.Array:
     ``thrust_map_mass`` set: the hover action of that (nominal) mass."""
     u = jnp.array([thrust_range(cfg)[2], 0.0, 0.0, 0.0])
     return control_to_action(cfg, u)
+
+
+def mixture_num_segments(cfg: EnvConfig) -> int:
+    """Track-table size of the training mixture and the validation tracks of ``cfg``: the paper
+    mixture's, or the wide mixture's when ``tracks.wide_mix`` is set (users' tracks may need more)."""
+    if cfg.tracks.wide_mix:
+        return tf.wide_num_segments(cfg.horizon_steps, cfg.dt)
+    return tr.train_num_segments(cfg.horizon_steps, cfg.dt)
+
+
+def mixture_track(cfg: EnvConfig, rng: jax.Array, num_segments: int) -> tr.Track:
+    """A track of the training mixture of ``cfg`` drawn from ``rng``: the paper's
+    (``trajectories.sample_train_track``) or, with ``tracks.wide_mix`` set, the wide one
+    (``track_families.sample_wide_track``)."""
+    t = cfg.tracks
+    if t.wide_mix:
+        return tf.sample_wide_track(rng, t.wide_mix, cfg.dt, cfg.horizon_steps, num_segments, cfg=t.generator)
+    return tr.sample_train_track(rng, t.generator, cfg.dt, cfg.horizon_steps, num_segments)
+
+
+def validation_tracks(cfg: EnvConfig, num_segments: int | None = None) -> tr.Track:
+    """The fixed validation tracks of ``cfg`` (batched; the only tracks a policy is selected
+    on): the paper mixture's 10, or the wide mixture's (``track_families.wide_validation_tracks``,
+    2 per family of positive weight) when ``tracks.wide_mix`` is set."""
+    t, n = cfg.tracks, num_segments or mixture_num_segments(cfg)
+    if t.wide_mix:
+        return tf.wide_validation_tracks(t.wide_mix, cfg.dt, cfg.horizon_steps, n, cfg=t.generator)
+    return tr.validation_tracks(t.generator, cfg.dt, cfg.horizon_steps, n)
+
+
+def num_validation_tracks(cfg: EnvConfig) -> int:
+    """How many tracks :func:`validation_tracks` holds."""
+    if cfg.tracks.wide_mix:
+        return len(tf.wide_validation_families(cfg.tracks.wide_mix))
+    return tr.NUM_VALIDATION_TRACKS
 
 
 @struct.dataclass
@@ -183,7 +219,7 @@ class TrackingEnv(Env):
         self.config = config
         c = config
         if c.tracks.track in ("train", "validation"):
-            self._n_seg = tr.train_num_segments(c.horizon_steps, c.dt)
+            self._n_seg = mixture_num_segments(c)
         else:
             self._n_seg = tr.num_segments_for(c.horizon_steps, c.tracks.generator.los_segment_steps)
         self._user = None  # users' training tracks, stacked, with the mixture's table size
@@ -215,10 +251,8 @@ class TrackingEnv(Env):
         c, n = self.config, self._n_seg
         if c.tracks.track == "train":
             if self._user is None:
-                return tr.sample_train_track(rng, c.tracks.generator, c.dt, c.horizon_steps, n)
-            mix = ct.pad(
-                tr.sample_train_track(rng, c.tracks.generator, c.dt, c.horizon_steps, self._mix_n), n, c.dt
-            )
+                return mixture_track(c, rng, n)
+            mix = ct.pad(mixture_track(c, rng, self._mix_n), n, c.dt)
             k_pick, k_use = jax.random.split(jax.random.fold_in(rng, _USER_TAG))
             user = jax.tree.map(
                 lambda x: x[jax.random.randint(k_pick, (), 0, len(c.tracks.train_tracks))], self._user
@@ -226,8 +260,8 @@ class TrackingEnv(Env):
             use = jax.random.uniform(k_use) < c.tracks.train_tracks_weight
             return jax.tree.map(lambda a, b: jnp.where(use, a, b), user, mix)
         if c.tracks.track == "validation":
-            bank = tr.validation_tracks(c.tracks.generator, c.dt, c.horizon_steps, n)
-            i = jax.random.randint(rng, (), 0, tr.NUM_VALIDATION_TRACKS)
+            bank = validation_tracks(c, n)
+            i = jax.random.randint(rng, (), 0, num_validation_tracks(c))
             return jax.tree.map(lambda x: x[i], bank)
         if c.tracks.track == "spiral_rt":
             return tr.spiral_rt(c.tracks.generator, n)

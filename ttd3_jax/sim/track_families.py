@@ -243,24 +243,9 @@ def vertical_curve(u) -> Curve:
 
 def _agile(u, n: int, dt: float, acc_max, speed_max) -> tr.Track:
     """Piecewise-constant random accelerations from rest at the origin, speed-capped (the cap
-    lowers a segment's acceleration, never breaks continuity: |a| never grows)."""
-    hold = _steps(u[0], AGILE_HOLD_S, dt)
-    seg_t = hold.astype(u.dtype) * dt
-    acc = _u(u[1 : 1 + 3 * n].reshape(n, 3), -1.0, 1.0) * jnp.asarray(acc_max, u.dtype)
-    cap_h, cap_z = speed_max
-
-    def seg(carry, a):
-        p, v = carry
-        v_new = v + a * seg_t
-        h = jnp.linalg.norm(v_new[:2])
-        v_new = v_new.at[:2].multiply(jnp.minimum(1.0, cap_h / jnp.maximum(h, 1e-9)))
-        v_new = v_new.at[2].set(jnp.clip(v_new[2], -cap_z, cap_z))
-        a_eff = (v_new - v) / seg_t
-        return (p + v * seg_t + 0.5 * a_eff * seg_t * seg_t, v_new), (p, v, a_eff)
-
-    zero = jnp.zeros(3, u.dtype)
-    _, (pos, vel, a) = jax.lax.scan(seg, (zero, zero), acc)
-    return tr.table(pos, vel, a, hold)
+    lowers a segment's acceleration, never breaks continuity: |a| never grows): the paper's
+    dynamics family with the agile bounds."""
+    return tr._train_dynamics(u, n, dt, AGILE_HOLD_S, acc_max, speed_max)
 
 
 def _los_fast(u, n: int, dt: float) -> tr.Track:

@@ -313,19 +313,24 @@ _los_uniforms = lambda n_seg: 6 + 2 * n_seg  # noqa: E731
 _SPIRAL_UNIFORMS = 5
 
 
-def _train_dynamics(u: jax.Array, n_seg: int, dt: float) -> Track:
-    """Piecewise-constant random acceleration, speed-capped, starting at rest at 0."""
-    lo, hi = (int(round(x / dt)) for x in _ACC_HOLD_S)
+def _train_dynamics(u: jax.Array, n_seg: int, dt: float, hold_s=_ACC_HOLD_S, acc_max=_ACC_MAX,
+                    speed_max=(_SPEED_CAP_H, _SPEED_CAP_Z)) -> Track:  # fmt: skip
+    """Piecewise-constant random acceleration, speed-capped, starting at rest at 0: one hold
+    time ~ U(``hold_s``) s for all segments, accelerations ~ U(±``acc_max``) m/s² per axis,
+    speed capped at ``speed_max`` = (horizontal, vertical) m/s.  The defaults are the paper
+    mixture's; the wide mixture's agile family passes its own."""
+    lo, hi = (max(1, int(round(x / dt))) for x in hold_s)
     hold = _randint(u[0], lo, hi)
     seg_t = hold.astype(u.dtype) * dt
-    acc = _uniform(u[1:].reshape(n_seg, 3), -1.0, 1.0) * jnp.asarray(_ACC_MAX, u.dtype)
+    acc = _uniform(u[1:].reshape(n_seg, 3), -1.0, 1.0) * jnp.asarray(acc_max, u.dtype)
+    cap_h, cap_z = speed_max
 
     def seg(carry, a):
         p, v = carry
         v_new = v + a * seg_t
         h = jnp.linalg.norm(v_new[:2])
-        v_new = v_new.at[:2].multiply(jnp.minimum(1.0, _SPEED_CAP_H / jnp.maximum(h, 1e-9)))
-        v_new = v_new.at[2].set(jnp.clip(v_new[2], -_SPEED_CAP_Z, _SPEED_CAP_Z))
+        v_new = v_new.at[:2].multiply(jnp.minimum(1.0, cap_h / jnp.maximum(h, 1e-9)))
+        v_new = v_new.at[2].set(jnp.clip(v_new[2], -cap_z, cap_z))
         a_eff = (v_new - v) / seg_t  # the cap lowers the acceleration, it never breaks continuity
         p_new = p + v * seg_t + 0.5 * a_eff * seg_t * seg_t
         return (p_new, v_new), (p, v, a_eff)
