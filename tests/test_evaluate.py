@@ -346,3 +346,69 @@ def test_robustness_returns_finite_statistics():
         assert s[name] > s["nominal"] and e[name] > e["nominal"], name
     with pytest.raises(ValueError, match="robustness condition"):
         evaluate_robustness(controller_build("hover", nominal), None, cfg, seeds, conditions=("gusts",))
+
+
+# --------------------------------------------------------------------------- perturbation sweep
+
+
+def _sweep_module():
+    path = os.path.join(os.path.dirname(__file__), "..", "experiments", "perturbation_sweep.py")
+    spec = importlib.util.spec_from_file_location("perturbation_sweep", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_perturbation_sweep_refuses_bad_arguments(tmp_path, capsys):
+    sweep = _sweep_module()
+    run_dir = fake_run_dir(tmp_path / "run")
+    out = str(tmp_path / "out")
+    cases = {
+        ("--seeds", "0"): "--seeds must be >= 1",
+        ("--mass=-10,x",): "--mass takes comma-separated numbers",
+        ("--mass=10,10",): "repeats a point",
+        ("--mass=-100",): "--mass points must be in (-100, ∞)",
+        ("--last", "--mass=40"): "--mass 40: EnvConfig.randomization.mass",  # the paper vehicle cannot hover
+        ("--latency-ms", "60"): "--latency-ms points must be in [0, 50]",
+        ("--noise=-1",): "--noise points must be in [0, ∞]",
+        ("--controllers", "policy,mpc"): "--controllers takes policy, nmpc or both",
+        ("--mass=", "--latency-ms=", "--noise="): "every panel is empty",
+        (): "no selected policy",  # the fake run has no best/: --last takes its checkpoint
+    }
+    for flags, message in cases.items():
+        with pytest.raises(SystemExit) as e:
+            sweep.main([run_dir, "--out", out, *flags])
+        assert e.value.code == 2, flags
+        err = capsys.readouterr().err.strip().splitlines()
+        assert message in err[-1], (flags, err)
+    with pytest.raises(SystemExit):
+        sweep.main([str(tmp_path / "nothing"), "--out", out])
+    assert "not a ttd3_jax run directory" in capsys.readouterr().err
+    assert not os.path.exists(out)
+
+
+@pytest.mark.slow
+def test_perturbation_sweep_writes_its_figures(tmp_path, capsys):
+    sweep = _sweep_module()
+    run_dir = fake_run_dir(tmp_path / "run")
+    out = str(tmp_path / "out")
+    argv = [run_dir, "--last", "--seeds", "1", "--out", out]
+    argv += ["--mass=0,20", "--latency-ms=0,20", "--noise=0,2"]
+    assert sweep.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "[policy] mass    +0 %" in printed and "[nmpc] obs_noise      ×2" in printed
+    with open(os.path.join(out, "perturbation.json")) as fh:
+        d = json.load(fh)
+    assert d["los_seeds"] == [1] and set(d["panels"]) == {"mass", "latency", "obs_noise"}
+    for who in ("policy", "nmpc"):
+        rows = {p: {pt["x"]: pt for pt in d["panels"][p][who]} for p in d["panels"]}
+        assert [sorted(r) for r in rows.values()] == [[0, 20], [0, 20], [0, 2]]
+        # the zero of every panel is the nominal plant: one result
+        zero = [rows[p][0]["los_mean"] for p in rows]
+        assert all(math.isfinite(z) for z in zero) and zero[0] == zero[1] == zero[2], (who, zero)
+        for p, x in (("mass", 20), ("latency", 20), ("obs_noise", 2)):
+            assert rows[p][x]["los_mean"] != rows[p][0]["los_mean"], (who, p)
+    with open(os.path.join(out, "perturbation.csv")) as fh:
+        lines = fh.read().strip().splitlines()
+    assert lines[0].startswith("panel,unit,size,controller,los_rt_error_mean") and len(lines) == 1 + 12
+    assert os.path.getsize(os.path.join(out, "perturbation.png")) > 10_000
