@@ -182,10 +182,11 @@ def main(argv=None) -> int:
     run, configs = check_args(ap, args)
     seeds = range(1, args.seeds + 1)
     seed, theta = run.thetas[0]
+    epoch = run.epoch[seed] if isinstance(run.epoch, dict) else run.epoch  # best/: {seed: epoch}
     nominal = run.env_config.for_eval("los_rt")
     which = "newest checkpoint" if args.last else "selected on the validation tracks"
     rate = 1 / run.env_config.control_dt
-    print(f"run {args.run_dir}: {run.spec.algo} seed {seed}, epoch {run.epoch} ({which}); NMPC built for its "
+    print(f"run {args.run_dir}: {run.spec.algo} seed {seed}, epoch {epoch} ({which}); NMPC built for its "
           f"nominal config, {rate:g} Hz; LOS-RT seeds 1..{args.seeds}")  # fmt: skip
     device = device_description()
     print(f"device={device}")
@@ -218,7 +219,7 @@ def main(argv=None) -> int:
     command = "python experiments/perturbation_sweep.py " + shlex.join(words)
     meta = dict(command=command, device=device, date=str(datetime.date.today()), elapsed_s=elapsed,
                 run=os.path.basename(os.path.normpath(args.run_dir)), algo=run.spec.algo, seed=seed,
-                epoch=run.epoch, policy=which, control_hz=rate, los_seeds=list(seeds),
+                epoch=epoch, policy=which, control_hz=rate, los_seeds=list(seeds),
                 units={p: PANELS[p][2] for p in configs}, obs_noise_stds=rob.ROBUSTNESS_OBS_NOISE,
                 nmpc="built for the run's nominal config, sensed state, unknown mismatch")  # fmt: skip
     with open(os.path.join(args.out, "perturbation.json"), "w") as fh:
