@@ -13,7 +13,7 @@ import dacite
 import tyro
 
 from ttd3_jax import checks, envs
-from ttd3_jax.sim.config import EnvConfig, grouped, make_config
+from ttd3_jax.sim.config import FIELD_GROUP, PLANT_NEUTRAL, EnvConfig, grouped, make_config
 from ttd3_jax.td3.buffer import transition_bytes
 from ttd3_jax.td3.config import Hyper, TrainConfig, validate_hyper
 from ttd3_jax.td3.env_spec import EnvSpec
@@ -22,11 +22,11 @@ from ttd3_jax.td3.trainer import Trainer, make_trainer
 QUADROTOR = "quadrotor"
 PRESETS = ("fast", "fast_dpg", "fast_model_free", "paper", "mujoco")
 SEED_LIMIT = 2**32  # seeds are uint32 PRNG keys: seed + num_seeds - 1 must stay below this
-CONFIG_FORMAT = 3  # config.json's "format"; files without one were written before it (format 0)
+CONFIG_FORMAT = 4  # config.json's "format"; files without one were written before it (format 0)
 GROUPED_TASK = 3  # the first format whose "task" holds EnvConfig's groups (before: flat, sim.config.grouped)
 # Fields added to the run spec after runs were first saved (2026-11-22): for each, the first
 # format whose files hold it, and the value that reproduces what a run saved before it did
-# (task fields by their name in the flat task of formats 0-2).
+# (task fields by their name: in the flat task of formats 0-2, in their group from format 3).
 ADDED_FIELDS = {
     ("train", "model_horizon"): (1, 0),  # 2026-12-01: the model-based actor update
     ("train", "critic_arch"): (1, "mlp"),  # 2026-12-03: residual critics
@@ -38,6 +38,8 @@ ADDED_FIELDS = {
     ("task", "train_tracks_weight"): (1, 0.25),
     ("train", "n_step"): (2, 1),  # 2026-12-05: n-step returns
     ("train", "advantage_dt"): (3, 0.0),  # 2026-12-05: deep advantage updating
+    # 2026-12-06: domain randomisation drawn per episode (sim.randomization), neutral: the nominal plant
+    **{("task", name): (4, list(v) if isinstance(v, tuple) else v) for name, v in PLANT_NEUTRAL.items()},
 }
 
 
@@ -195,7 +197,13 @@ def migrate(d) -> dict:
     if version not in range(CONFIG_FORMAT) or isinstance(version, bool):
         raise ValueError(f"run spec: format {version!r} is not one this version reads (0 to {CONFIG_FORMAT})")
     for (group, name), (since, value) in ADDED_FIELDS.items():
-        if version < since and isinstance(out.get(group), dict) and name not in out[group]:
+        if version >= since or not isinstance(out.get(group), dict):
+            continue
+        if group == "task" and version >= GROUPED_TASK:  # the task's groups: into the field's own
+            sub = out["task"].get(FIELD_GROUP[name])
+            if isinstance(sub, dict) and name not in sub:
+                out["task"] = {**out["task"], FIELD_GROUP[name]: {**sub, name: value}}
+        elif name not in out[group]:
             out[group] = {**out[group], name: value}
     if version < GROUPED_TASK and isinstance(out.get("task"), dict):
         out["task"] = grouped(out["task"])
