@@ -18,7 +18,7 @@ import pytest
 from tiny import tiny
 
 from ttd3_jax import checkpoint as ckpt
-from ttd3_jax import runs
+from ttd3_jax import report, runs
 from ttd3_jax import spec as sp
 from ttd3_jax.control.closed_loop import closed_loop, evaluate_on_tracks, hover_controller, sensed_controller
 from ttd3_jax.control.closed_loop import test_tracks as make_test_tracks
@@ -412,3 +412,13 @@ def test_perturbation_sweep_writes_its_figures(tmp_path, capsys):
         lines = fh.read().strip().splitlines()
     assert lines[0].startswith("panel,unit,size,controller,los_rt_error_mean") and len(lines) == 1 + 12
     assert os.path.getsize(os.path.join(out, "perturbation.png")) > 10_000
+
+
+def test_format_robustness_aligns_the_widened_rows():
+    los = {k: {"mean": 1.0, "std": 0.5} for k in ("tracking_error", "energy")}
+    row = {"spiral_rt": {"tracking_error": 2.0}, "los_rt": dict(los, crashed=0, seeds=[1, 2])}
+    lines = report.format_robustness("nmpc", {name: row for name in ROBUSTNESS_CONDITIONS}).splitlines()
+    assert lines[0].startswith("robustness of nmpc: Spiral-RT, and LOS-RT seeds 1..2")
+    assert [ln.split()[0] for ln in lines[2:]] == list(ROBUSTNESS_CONDITIONS)
+    width = max(len(n) for n in ROBUSTNESS_CONDITIONS)
+    assert len({ln.index("2.00") for ln in lines[2:]}) == 1 and lines[2].index("2.00") > width
