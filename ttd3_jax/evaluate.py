@@ -180,7 +180,7 @@ def classical_env(preset: str, task_args: list[str], vehicle: str | None = None)
         flag = "--task." + EnvConfig.path(protocol[0]).replace("_", "-")
         raise ValueError(
             f"{flag} is set by the evaluation protocol (--track, --los-seed; "
-            "--robustness for wind and noise; 3000 steps per episode)"
+            "--robustness for wind, noise and a mismatched plant; 3000 steps per episode)"
         )
     return cfg
 
