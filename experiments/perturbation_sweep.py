@@ -163,7 +163,14 @@ def plot(path: str, data: dict, seeds: int, title: str) -> None:
                 top = max((y for y in ys if math.isfinite(y)), default=1.0)
                 cx = [x for x, _ in crashed]
                 cy = [y if math.isfinite(y) else top for _, y in crashed]
-                ax.scatter(cx, cy, marker="x", s=90, color="red", zorder=5, label=f"{who}: crash")
+                ax.scatter(
+                    cx, cy, marker="x", s=90, color="red", zorder=5, label=f"{who}: crash (LOS-RT tracks)"
+                )
+                for p, x, y in zip(
+                    (p for p in pts if p["los_crashed"] or p["spiral_crashed"]), cx, cy, strict=True
+                ):
+                    ax.annotate(f"{p['los_crashed']}/{seeds}", (x, y), textcoords="offset points",
+                                xytext=(-28, 4), fontsize=8, color="red")  # fmt: skip
         ax.set_yscale("log")
         ax.set_xlabel(PANELS[panel][3])
         ax.set_ylabel("LOS-RT Σ‖e‖ [m], mean ± std")
@@ -173,6 +180,60 @@ def plot(path: str, data: dict, seeds: int, title: str) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def cell(p: dict | None) -> str:
+    if p is None:
+        return "–"
+    crash = f" ({p['los_crashed']} crashed)" if p["los_crashed"] else ""
+    return f"{p['los_mean']:.1f} ± {p['los_std']:.1f}{crash} | {p['spiral']:.2f}"
+
+
+def write_outputs(out: str, meta: dict, data: dict) -> None:
+    """``README.md`` (the tables), ``perturbation.json``, ``perturbation.csv`` and
+    ``perturbation.png`` of a sweep into ``out``."""
+    os.makedirs(out, exist_ok=True)
+    n = len(meta["los_seeds"])
+    with open(os.path.join(out, "perturbation.json"), "w") as fh:
+        json.dump(json_safe(dict(meta, panels=data)), fh, indent=2)
+    with open(os.path.join(out, "perturbation.csv"), "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(CSV_COLUMNS)
+        for panel, rows in data.items():
+            for who, pts in rows.items():
+                for p in pts:
+                    w.writerow([panel, PANELS[panel][2], f"{p['x']:g}", who, f"{p['los_mean']:.4f}",
+                                f"{p['los_std']:.4f}", p["los_crashed"], n, f"{p['los_energy']:.2f}",
+                                f"{p['spiral']:.4f}", p["spiral_crashed"]])  # fmt: skip
+    title = f"{meta['algo']} ({meta['run']}) vs NMPC, {meta['control_hz']:g} Hz"
+    plot(os.path.join(out, "perturbation.png"), data, n, title)
+    whos = sorted({who for rows in data.values() for who in rows}, key=CONTROLLERS.index)
+    lines = [
+        "# Tracking error against the size of an unknown mismatch", "",
+        f"`{meta['command']}` on {meta['device']} (a 2-core VM with niced background runs), {meta['date']}, "
+        f"{meta['elapsed_s'] / 60:.0f} min. RUN_DIR: `{meta['run']}` (`{meta['algo']}`, seed {meta['seed']}, "
+        f"epoch {meta['epoch']}, {meta['policy']}); NMPC {meta['nmpc']}, at the run's "
+        f"{meta['control_hz']:g} Hz. LOS-RT seeds 1..{n}: Σ‖e‖ mean ± std [m]; Spiral-RT Σ‖e‖ [m]; crash: "
+        "‖e‖ > 1 m. Each point is one fixed perturbation of the nominal evaluation config "
+        "(`ttd3_jax.control.robustness`); the others stay nominal. Observation noise ×1 is the robustness "
+        "row's: 0.01 m, 0.05 m/s, 0.005 per quaternion component.", "",
+        "![Σ‖e‖ against the size](perturbation.png)", "",
+    ]  # fmt: skip
+    for panel, rows in data.items():
+        head = " | ".join(f"{who} LOS-RT | {who} Spiral-RT" for who in whos)
+        lines += [
+            f"## {PANELS[panel][3]}",
+            "",
+            f"| size | {head} |",
+            "| ---: |" + " ---: | ---: |" * len(whos),
+        ]
+        xs = sorted({p["x"] for pts in rows.values() for p in pts})
+        for x in xs:
+            cells = [cell(next((p for p in rows.get(who, ()) if p["x"] == x), None)) for who in whos]
+            lines.append(f"| {fmt_point(panel, x)} | " + " | ".join(cells) + " |")
+        lines.append("")
+    with open(os.path.join(out, "README.md"), "w") as fh:
+        fh.write("\n".join(lines))
 
 
 def main(argv=None) -> int:
@@ -214,7 +275,6 @@ def main(argv=None) -> int:
                                        progress=progress)  # fmt: skip
             data[panel][who] = [point(x, res[n]) for n, x in names.items()]
     elapsed = time.perf_counter() - t_all
-    os.makedirs(args.out, exist_ok=True)
     words = [("RUN_DIR" if w == args.run_dir else w) for w in argv]
     command = "python experiments/perturbation_sweep.py " + shlex.join(words)
     meta = dict(command=command, device=device, date=str(datetime.date.today()), elapsed_s=elapsed,
@@ -222,20 +282,8 @@ def main(argv=None) -> int:
                 epoch=epoch, policy=which, control_hz=rate, los_seeds=list(seeds),
                 units={p: PANELS[p][2] for p in configs}, obs_noise_stds=rob.ROBUSTNESS_OBS_NOISE,
                 nmpc="built for the run's nominal config, sensed state, unknown mismatch")  # fmt: skip
-    with open(os.path.join(args.out, "perturbation.json"), "w") as fh:
-        json.dump(json_safe(dict(meta, panels=data)), fh, indent=2)
-    with open(os.path.join(args.out, "perturbation.csv"), "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(CSV_COLUMNS)
-        for panel, rows in data.items():
-            for who, pts in rows.items():
-                for p in pts:
-                    w.writerow([panel, PANELS[panel][2], f"{p['x']:g}", who, f"{p['los_mean']:.4f}",
-                                f"{p['los_std']:.4f}", p["los_crashed"], args.seeds, f"{p['los_energy']:.2f}",
-                                f"{p['spiral']:.4f}", p["spiral_crashed"]])  # fmt: skip
-    plot(os.path.join(args.out, "perturbation.png"), data, args.seeds,
-         f"{run.spec.algo} ({meta['run']}) vs NMPC, {rate:g} Hz")  # fmt: skip
-    print(f"wrote {args.out}/perturbation.json, perturbation.csv and perturbation.png ({elapsed:.0f} s)")
+    write_outputs(args.out, meta, data)
+    print(f"wrote {args.out}/README.md, perturbation.json, .csv and .png ({elapsed:.0f} s)")
     return 0
 
 
