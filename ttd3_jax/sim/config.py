@@ -175,8 +175,8 @@ class RandomizationConfig:
     inertia: tuple[float, float] = (1.0, 1.0)  # factor on each axis of quad.inertia (drawn per axis)
     thrust_max: tuple[float, float] = (1.0, 1.0)  # factor on quad.thrust_max (the flown vehicle's limit)
     thrust_gain: tuple[float, float] = (1.0, 1.0)  # thrust produced / thrust commanded (thrust-map error)
-    tau_rate: tuple[float, float] = (1.0, 1.0)  # factor on quad.tau_rate (an "instant" vehicle then
-    #   flies the first_order rate model with that time constant; its observation stays as it was)
+    # an "instant" vehicle flies the first_order rate model when tau_rate is randomised (same observation)
+    tau_rate: tuple[float, float] = (1.0, 1.0)  # factor on quad.tau_rate (first_order time constant)
     rate_limit: tuple[float, float] = (1.0, 1.0)  # factor on the body-rate limits rate_min, rate_max
     latency: tuple[float, float] = (0.0, 0.0)  # s, actuation latency, whole physics steps (round(x/dt))
     obs_noise: tuple[float, float] = (1.0, 1.0)  # factor on disturbances.obs_noise_* (the stds)
