@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import math
@@ -17,17 +18,23 @@ import pytest
 from tiny import tiny
 
 from ttd3_jax import checkpoint as ckpt
-from ttd3_jax import runs
+from ttd3_jax import report, runs
 from ttd3_jax import spec as sp
 from ttd3_jax.control.closed_loop import closed_loop, evaluate_on_tracks, hover_controller, sensed_controller
 from ttd3_jax.control.closed_loop import test_tracks as make_test_tracks
 from ttd3_jax.control.evaluator import controller_build
 from ttd3_jax.control.geometric import geometric_controller
-from ttd3_jax.control.robustness import ROBUSTNESS_CONDITIONS, evaluate_robustness, robustness_conditions
+from ttd3_jax.control.robustness import (
+    ROBUSTNESS_CONDITIONS,
+    ROBUSTNESS_DESCRIPTIONS,
+    evaluate_robustness,
+    robustness_conditions,
+)
 from ttd3_jax.evaluate import main
 from ttd3_jax.report import TRACE_COLUMNS
 from ttd3_jax.runner import run
 from ttd3_jax.sharding import per_seed
+from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.env import TrackingEnv, hover_action, yaw_of
 from ttd3_jax.td3 import networks
@@ -221,28 +228,82 @@ def test_action_delay_applies_the_previous_action():
         EnvConfig().replace(thrust_map_mass=0.0)
 
 
-def test_mass_mismatch_is_unknown_to_the_controller():
+def _flat(cfg: EnvConfig) -> dict:
+    """``{group.field: value}`` of a config (its own fields as they are)."""
+    out = {}
+    for k, v in dataclasses.asdict(cfg).items():
+        out.update({f"{k}.{f}": x for f, x in v.items()} if isinstance(v, dict) else {k: v})
+    return out
+
+
+def test_robustness_conditions_carry_exactly_the_stated_perturbations():
+    cfg = make_config("practical", hover_centered_thrust=True, thrust_map_mass=None)
+    conds = robustness_conditions(cfg)
+    nominal = conds["nominal"]
+    assert nominal == cfg.for_eval("los_rt") and tuple(conds) == ROBUSTNESS_CONDITIONS
+    assert set(ROBUSTNESS_CONDITIONS) == set(ROBUSTNESS_DESCRIPTIONS)
+    d = 0.02 / math.sqrt(3)
+    expected = {
+        "nominal": {},
+        "wind0.5": {"disturbances.wind_sigma": 0.5},
+        "wind1.0": {"disturbances.wind_sigma": 1.0},
+        "mass+30": {"randomization.mass": (1.3, 1.3)},
+        "mass-30": {"randomization.mass": (0.7, 0.7)},
+        "thrust-20": {"randomization.thrust_gain": (0.8, 0.8)},
+        "rate_tau0.05": {"randomization.tau_rate": (0.05 / 0.03, 0.05 / 0.03)},
+        "latency10ms": {"randomization.latency": (0.01, 0.01)},
+        "latency20ms": {"randomization.latency": (0.02, 0.02)},
+        "obs_noise": {
+            "disturbances.obs_noise_pos": 0.01,
+            "disturbances.obs_noise_vel": 0.05,
+            "disturbances.obs_noise_quat": 0.005,
+        },  # fmt: skip
+        "pos_bias2cm": {"randomization.pos_bias": (d, d, d)},
+    }
+    assert set(expected) == set(conds)
+    flat0 = _flat(nominal)
+    for name, c in conds.items():
+        changed = {k: v for k, v in _flat(c).items() if v != flat0[k]}
+        assert changed.keys() == expected[name].keys(), name
+        for k, v in expected[name].items():
+            assert changed[k] == pytest.approx(v), (name, k)
+        # the controller's (nominal) vehicle and action map are untouched: the mismatch is unknown
+        assert c.vehicle == nominal.vehicle, name
+        np.testing.assert_allclose(hover_action(c), hover_action(nominal))
+    assert rz.latency_steps(conds["latency10ms"]) == (10, 10)  # 1 ms physics steps: one 100 Hz step
+    assert rz.latency_steps(conds["latency20ms"]) == (20, 20)
+    assert rz.flown_rate_model(conds["rate_tau0.05"]) == "first_order"
+    plant = rz.draw(conds["rate_tau0.05"], jax.random.PRNGKey(3))
+    assert float(plant.quad.tau_rate) == pytest.approx(0.05)
+    bias = rz.draw(conds["pos_bias2cm"], jax.random.PRNGKey(3)).pos_bias
+    np.testing.assert_allclose(bias, [d, d, d], rtol=1e-6)  # fixed, not drawn
+    assert float(np.linalg.norm(bias)) == pytest.approx(0.02, rel=1e-6)
+    assert not rz.active(nominal)
+    assert all(rz.active(conds[n]) for n in ("mass+30", "latency10ms", "pos_bias2cm"))
+    for bad in ((0.01, 0.0), (0.0, 0.0, float("nan")), -0.01):
+        with pytest.raises(ValueError, match="pos_bias"):
+            nominal.replace(pos_bias=bad)
+
+
+def test_mass_and_thrust_mismatch_are_unknown_to_the_controller():
     # the hover-centred map (a0 = 0 is hover thrust) would leak the mass if it used the true mass
     cfg = make_config("practical", episode_steps=500, hover_centered_thrust=True)
     conds = robustness_conditions(cfg)
-    assert conds["mass+20"].vehicle.quad.mass == pytest.approx(1.8)
-    assert conds["mass-20"].vehicle.quad.mass == pytest.approx(1.2)
-    assert conds["nominal"].vehicle.quad.mass == 1.5 and conds["nominal"].disturbances.wind_sigma == 0.0
-    for name in ("mass+20", "mass-20"):  # the nominal hover action is the same in every condition
-        np.testing.assert_allclose(hover_action(conds[name]), hover_action(conds["nominal"]))
     ctrl = hover_controller(conds["nominal"])  # the controller knows only the nominal config
     # any track: the hover controller ignores it; only the vehicle's own climb or sink is measured
     track = jax.tree.map(lambda x: x[0], make_test_tracks(TrackingEnv(conds["nominal"])))
     dz = {}
-    for name in ("nominal", "mass+20", "mass-20"):
+    for name in ("nominal", "mass+30", "mass-30", "thrust-20"):
         env = TrackingEnv(conds[name])
         r = closed_loop(env, ctrl, env.reset_with_track(jax.random.PRNGKey(0), track))
         dz[name] = float(r.pos[-1, 2] - r.pos[0, 2])
     t = 0.5  # s
     assert abs(dz["nominal"]) < 1e-3
-    # the heavier quad sinks with a = g(1/1.2 - 1), the lighter one climbs with g(1/0.8 - 1)
-    assert dz["mass+20"] == pytest.approx(-0.5 * 9.81 / 6 * t**2, rel=0.05)
-    assert dz["mass-20"] == pytest.approx(0.5 * 9.81 / 4 * t**2, rel=0.05)
+    # the heavier quad sinks with a = g(1/1.3 - 1), the lighter one climbs with g(1/0.7 - 1),
+    # 20 % less thrust sinks with g(0.8 - 1)
+    assert dz["mass+30"] == pytest.approx(0.5 * 9.81 * (1 / 1.3 - 1) * t**2, rel=0.05)
+    assert dz["mass-30"] == pytest.approx(0.5 * 9.81 * (1 / 0.7 - 1) * t**2, rel=0.05)
+    assert dz["thrust-20"] == pytest.approx(0.5 * 9.81 * (0.8 - 1) * t**2, rel=0.05)
 
 
 def test_sensed_controller_on_the_track_frame_equals_the_true_state_controller():
@@ -266,7 +327,7 @@ def test_robustness_returns_finite_statistics():
     cfg = make_config("paper", episode_steps=300)
     nominal = cfg.for_eval("los_rt")
     seeds = (1, 2)
-    conditions = ("nominal", "wind", "obs_noise", "delay")  # the mass conditions: test above
+    conditions = ("nominal", "wind0.5", "rate_tau0.05", "latency20ms", "obs_noise", "pos_bias2cm")
     geo = evaluate_robustness(controller_build("geometric", nominal), None, cfg, seeds, conditions=conditions)
     assert tuple(geo) == conditions
     for name, r in geo.items():
@@ -277,12 +338,87 @@ def test_robustness_returns_finite_statistics():
             assert los[key]["std"] >= 0
         assert math.isfinite(r["spiral_rt"]["tracking_error"])
     e = {k: v["los_rt"]["tracking_error"]["mean"] for k, v in geo.items()}
-    for name in conditions[1:]:  # each disturbance reaches the (sensed-state) geometric controller
+    s = {k: v["spiral_rt"]["tracking_error"] for k, v in geo.items()}
+    for name in conditions[1:]:  # each perturbation reaches the (sensed-state) geometric controller
         assert e[name] != e["nominal"], name
-    build = controller_build("hover", nominal)
-    hover = evaluate_robustness(build, None, cfg, seeds, conditions=("mass+20",))
-    los = hover["mass+20"]["los_rt"]
-    assert math.isfinite(los["tracking_error"]["mean"]) and math.isfinite(los["tracking_error"]["std"])
-    assert set(ROBUSTNESS_CONDITIONS) == set(robustness_conditions(cfg))
+    # ... and makes its tracking worse (a slower or later actuation, a wrong position)
+    for name in ("rate_tau0.05", "latency20ms", "pos_bias2cm"):
+        assert s[name] > s["nominal"] and e[name] > e["nominal"], name
     with pytest.raises(ValueError, match="robustness condition"):
-        evaluate_robustness(build, None, cfg, seeds, conditions=("gusts",))
+        evaluate_robustness(controller_build("hover", nominal), None, cfg, seeds, conditions=("gusts",))
+
+
+# --------------------------------------------------------------------------- perturbation sweep
+
+
+def _sweep_module():
+    path = os.path.join(os.path.dirname(__file__), "..", "experiments", "perturbation_sweep.py")
+    spec = importlib.util.spec_from_file_location("perturbation_sweep", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_perturbation_sweep_refuses_bad_arguments(tmp_path, capsys):
+    sweep = _sweep_module()
+    run_dir = fake_run_dir(tmp_path / "run")
+    out = str(tmp_path / "out")
+    cases = {
+        ("--seeds", "0"): "--seeds must be >= 1",
+        ("--mass=-10,x",): "--mass takes comma-separated numbers",
+        ("--mass=10,10",): "repeats a point",
+        ("--mass=-100",): "--mass points must be in (-100, ∞)",
+        ("--last", "--mass=40"): "--mass 40: EnvConfig.randomization.mass",  # the paper vehicle cannot hover
+        ("--latency-ms", "60"): "--latency-ms points must be in [0, 50]",
+        ("--noise=-1",): "--noise points must be in [0, ∞]",
+        ("--controllers", "policy,mpc"): "--controllers takes policy, nmpc or both",
+        ("--mass=", "--latency-ms=", "--noise="): "every panel is empty",
+        (): "no selected policy",  # the fake run has no best/: --last takes its checkpoint
+    }
+    for flags, message in cases.items():
+        with pytest.raises(SystemExit) as e:
+            sweep.main([run_dir, "--out", out, *flags])
+        assert e.value.code == 2, flags
+        err = capsys.readouterr().err.strip().splitlines()
+        assert message in err[-1], (flags, err)
+    with pytest.raises(SystemExit):
+        sweep.main([str(tmp_path / "nothing"), "--out", out])
+    assert "not a ttd3_jax run directory" in capsys.readouterr().err
+    assert not os.path.exists(out)
+
+
+@pytest.mark.slow
+def test_perturbation_sweep_writes_its_figures(tmp_path, capsys):
+    sweep = _sweep_module()
+    run_dir = fake_run_dir(tmp_path / "run")
+    out = str(tmp_path / "out")
+    argv = [run_dir, "--last", "--seeds", "1", "--out", out]
+    argv += ["--mass=0,20", "--latency-ms=0,20", "--noise=0,2"]
+    assert sweep.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "[policy] mass    +0 %" in printed and "[nmpc] obs_noise      ×2" in printed
+    with open(os.path.join(out, "perturbation.json")) as fh:
+        d = json.load(fh)
+    assert d["los_seeds"] == [1] and set(d["panels"]) == {"mass", "latency", "obs_noise"}
+    for who in ("policy", "nmpc"):
+        rows = {p: {pt["x"]: pt for pt in d["panels"][p][who]} for p in d["panels"]}
+        assert [sorted(r) for r in rows.values()] == [[0, 20], [0, 20], [0, 2]]
+        # the zero of every panel is the nominal plant: one result
+        zero = [rows[p][0]["los_mean"] for p in rows]
+        assert all(math.isfinite(z) for z in zero) and zero[0] == zero[1] == zero[2], (who, zero)
+        for p, x in (("mass", 20), ("latency", 20), ("obs_noise", 2)):
+            assert rows[p][x]["los_mean"] != rows[p][0]["los_mean"], (who, p)
+    with open(os.path.join(out, "perturbation.csv")) as fh:
+        lines = fh.read().strip().splitlines()
+    assert lines[0].startswith("panel,unit,size,controller,los_rt_error_mean") and len(lines) == 1 + 12
+    assert os.path.getsize(os.path.join(out, "perturbation.png")) > 10_000
+
+
+def test_format_robustness_aligns_the_widened_rows():
+    los = {k: {"mean": 1.0, "std": 0.5} for k in ("tracking_error", "energy")}
+    row = {"spiral_rt": {"tracking_error": 2.0}, "los_rt": dict(los, crashed=0, seeds=[1, 2])}
+    lines = report.format_robustness("nmpc", {name: row for name in ROBUSTNESS_CONDITIONS}).splitlines()
+    assert lines[0].startswith("robustness of nmpc: Spiral-RT, and LOS-RT seeds 1..2")
+    assert [ln.split()[0] for ln in lines[2:]] == list(ROBUSTNESS_CONDITIONS)
+    width = max(len(n) for n in ROBUSTNESS_CONDITIONS)
+    assert len({ln.index("2.00") for ln in lines[2:]}) == 1 and lines[2].index("2.00") > width

@@ -78,7 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--timing", action=argparse.BooleanOptionalAction, default=True, help="measure run times (default on)"
     )
     add("--repeats", type=int, default=3, help="timed runs per run-time figure (default 3)")
-    add("--robustness", action="store_true", help="also evaluate under wind, mass, noise, delay")
+    add("--robustness", action="store_true", help="also evaluate under a fixed unknown mismatch: wind, mass, "
+        "thrust, rate lag, latency, observation noise and bias")  # fmt: skip
     add("--robustness-seeds", type=int, default=20, help="LOS-RT seeds 1..N for --robustness")
     add("--nmpc-horizon", type=int, default=None, help="NMPC nodes N (nmpc only)")
     add("--nmpc-solve-every", type=int, default=None, help="NMPC control steps between re-solves (nmpc only)")
@@ -179,7 +180,7 @@ def classical_env(preset: str, task_args: list[str], vehicle: str | None = None)
         flag = "--task." + EnvConfig.path(protocol[0]).replace("_", "-")
         raise ValueError(
             f"{flag} is set by the evaluation protocol (--track, --los-seed; "
-            "--robustness for wind and noise; 3000 steps per episode)"
+            "--robustness for wind, noise and a mismatched plant; 3000 steps per episode)"
         )
     return cfg
 

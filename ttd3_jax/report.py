@@ -211,17 +211,18 @@ def format_paper() -> str:
 def format_robustness(label: str, rob: dict) -> str:
     """Robustness table of one controller (:func:`ttd3_jax.control.robustness.evaluate_robustness`)."""
     seeds = next(iter(rob.values()))["los_rt"]["seeds"]
+    w = max(10, *(len(name) for name in rob))
     lines = [
         f"robustness of {label}: Spiral-RT, and LOS-RT seeds {seeds[0]}..{seeds[-1]} (mean ± std over "
         f"{len(seeds)})",
-        f"{'condition':<10} {'Spiral Σ||e||':>13} {'LOS Σ||e|| mean ± std':>24} {'LOS crashes':>11} "
+        f"{'condition':<{w}} {'Spiral Σ||e||':>13} {'LOS Σ||e|| mean ± std':>24} {'LOS crashes':>11} "
         f"{'LOS Σ||a|| mean ± std':>22}",
     ]
     for name, r in rob.items():
         los = r["los_rt"]
         e, a = los["tracking_error"], los["energy"]
         lines.append(
-            f"{name:<10} {fmt(r['spiral_rt']['tracking_error'], '13.2f')} "
+            f"{name:<{w}} {fmt(r['spiral_rt']['tracking_error'], '13.2f')} "
             f"{fmt(e['mean'], '13.2f')} ± {fmt(e['std'], '8.2f')} "
             f"{los['crashed']:>5}/{len(los['seeds']):<5} "
             f"{fmt(a['mean'], '12.1f')} ± {fmt(a['std'], '7.1f')}"

@@ -192,14 +192,22 @@ class RandomizationConfig:
     rate_limit: tuple[float, float] = (1.0, 1.0)  # factor on the body-rate limits rate_min, rate_max
     latency: tuple[float, float] = (0.0, 0.0)  # s, actuation latency, whole physics steps (round(x/dt))
     obs_noise: tuple[float, float] = (1.0, 1.0)  # factor on disturbances.obs_noise_* (the stds)
-    pos_bias: float = 0.0  # m, ± per axis: a constant bias of the observed position
+    pos_bias: float | tuple[float, float, float] = 0.0  # m, ± per axis: a constant bias of the observed
+    #   position; a 3-tuple instead is that bias itself, the same every episode (robustness rows)
     wind_mean: float = 0.0  # m/s², ± per axis: a constant wind acceleration added to the OU wind
 
     def __post_init__(self):
         f = lambda name: _where("randomization", name)  # noqa: E731
         checks.boolean(f("randomize_init"), self.randomize_init)
-        for name in ("init_pos", "init_vel", "init_tilt_deg", "init_yaw_deg", "pos_bias", "wind_mean"):
+        for name in ("init_pos", "init_vel", "init_tilt_deg", "init_yaw_deg", "wind_mean"):
             checks.number(f(name), getattr(self, name), 0)
+        if isinstance(self.pos_bias, tuple | list):
+            if len(self.pos_bias) != 3 or not all(checks.is_number(x) for x in self.pos_bias):
+                allowed = "a number >= 0 (± per axis) or a fixed bias (x, y, z) in m"
+                checks.fail(f("pos_bias"), allowed, self.pos_bias)
+            object.__setattr__(self, "pos_bias", tuple(float(x) for x in self.pos_bias))
+        else:
+            checks.number(f("pos_bias"), self.pos_bias, 0)
         for name in PLANT_FACTORS:
             _range(f(name), getattr(self, name), 0, None, lo_open=True)
         _range(f("obs_noise"), self.obs_noise, 0, None)

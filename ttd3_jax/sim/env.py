@@ -453,7 +453,7 @@ class TrackingEnv(Env):
             q = q + scale * c.disturbances.obs_noise_quat * jax.random.normal(kq, (4,), p.dtype)
             q = q / jnp.linalg.norm(q)
             ps = ps.replace(key=key)
-        if self._randomized and c.randomization.pos_bias > 0:
+        if self._randomized and rz.has_pos_bias(c):
             p = p + ps.plant.pos_bias  # the observed position's bias (before the track-frame shift)
         if c.observation.canonical_q_obs:
             q = jnp.where(q[0] < 0, -q, q)

@@ -43,6 +43,17 @@ def active(cfg: EnvConfig) -> bool:
     return not plant_is_nominal(cfg.randomization)
 
 
+def fixed_pos_bias(cfg: EnvConfig) -> bool:
+    """Static: whether ``randomization.pos_bias`` is a fixed (x, y, z) bias, not a ± range."""
+    return isinstance(cfg.randomization.pos_bias, tuple)
+
+
+def has_pos_bias(cfg: EnvConfig) -> bool:
+    """Static: whether the observed position carries a bias."""
+    b = cfg.randomization.pos_bias
+    return any(x != 0 for x in b) if fixed_pos_bias(cfg) else b > 0
+
+
 def latency_steps(cfg: EnvConfig) -> tuple[int, int]:
     """The latency range in physics steps: round(seconds / dt), plus ``action_delay`` control
     steps (which the randomised env counts as latency)."""
@@ -116,6 +127,8 @@ def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=N
         thrust_gain=uni(6, r.thrust_gain),
         latency=latency,
         noise_scale=uni(7, r.obs_noise),
-        pos_bias=uni(8, (-r.pos_bias, r.pos_bias), (3,)),
+        pos_bias=(
+            jnp.asarray(r.pos_bias, dtype) if fixed_pos_bias(cfg) else uni(8, (-r.pos_bias, r.pos_bias), (3,))
+        ),
         wind_mean=uni(9, (-r.wind_mean, r.wind_mean), (3,)),
     )
