@@ -230,6 +230,7 @@ def test_a_format_3_config_loads_with_the_nominal_plant():
     assert sp.from_dict(d).task.randomization.latency == (0.0, 0.01)
 
 
+@pytest.mark.slow  # tests/test_robust.py's tiny robust run covers it by default
 def test_a_tiny_randomised_run_trains():
     task = sp.preset("fast_dpg").task.replace(mass=(0.9, 1.1), latency=(0.0, 0.02), thrust_gain=(0.95, 1.05),
                                               pos_bias=0.01, wind_mean=0.2)  # fmt: skip

@@ -162,6 +162,7 @@ def test_a_format_3_config_json_gets_the_paper_mixture():
     assert sp.from_dict(json.loads(json.dumps(sp.to_dict(wide)))) == wide
 
 
+@pytest.mark.slow  # tests/test_robust.py's tiny robust run covers it by default
 def test_a_tiny_run_trains_on_the_wide_mixture(tmp_path):
     spec = tiny(epochs=1, task=tiny().task.replace(wide_mix=tf.WIDE_MIX))
     summary = run(spec, out=str(tmp_path), verbose=False)
