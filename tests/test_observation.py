@@ -63,3 +63,21 @@ def test_a_layout_refuses_parts_that_do_not_match_it():
         observation.ObsLayout((late, *lay.parts))
     with pytest.raises(ValueError, match="unique"):
         observation.ObsLayout((*lay.parts, dataclasses.replace(lay.parts[0])))
+
+
+def test_the_error_integral_integrates_the_observed_position_as_policy_json_says():
+    """obs_memory's error integral follows policy.json's recurrence with the *measured* position
+    (noise and bias included): a vehicle can keep it, and it does not leak the true state."""
+    from ttd3_jax.policy_export import memory_spec
+
+    cfg = make_config("practical", obs_memory=True, obs_noise_pos=0.01, pos_bias=(0.02, 0.0, -0.01))
+    env, lay, mem = TrackingEnv(cfg), observation.layout(cfg), memory_spec(cfg)
+    s = env.reset(jax.random.PRNGKey(3))
+    a = jnp.array([0.1, 0.05, -0.05, 0.0])
+    for _ in range(5):
+        before = np.asarray(s.obs[lay.slice("error_integral")])
+        s = env.step(s, a)
+        p_rel = np.asarray(s.obs[lay.slice("p")])  # measured p - p_d,k (obs_frame "track")
+        want = mem["leak"] * before + mem["dt_s"] * -p_rel
+        np.testing.assert_allclose(np.asarray(s.obs[lay.slice("error_integral")]), want, rtol=1e-5, atol=1e-7)
+        np.testing.assert_array_equal(np.asarray(s.obs[lay.slice("last_action")]), np.asarray(a))

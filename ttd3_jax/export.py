@@ -76,9 +76,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     cfg = run.env_config
     o = cfg.observation
-    if o.obs_memory or o.obs_privileged:
-        print(f"error: {run_dir} observes obs_memory={o.obs_memory}, obs_privileged={o.obs_privileged}; "
-              "export supports the stateless observation only (both false)", file=sys.stderr)  # fmt: skip
+    if o.obs_privileged:
+        print(f"error: {run_dir} observes obs_privileged=True; export supports the actor's observation "
+              "without the critics' parts only (obs_privileged false)", file=sys.stderr)  # fmt: skip
         return 2
     seed, (actor, stats) = run.thetas[args.seed_index]
     obs_size = TrackingEnv(run.env_config).observation_size

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 from importlib import metadata
 from typing import NamedTuple
@@ -20,8 +21,11 @@ import numpy as np
 
 from ttd3_jax import runs
 from ttd3_jax.sim import observation
+from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.env import thrust_range
+from ttd3_jax.sim.track_families import FAMILIES
+from ttd3_jax.sim.vehicles import vehicle_of
 from ttd3_jax.td3 import networks
 
 ONNX_OPSET = 17
@@ -216,6 +220,23 @@ def observation_spec(cfg: EnvConfig, obs_size: int) -> dict:
         if cfg.observation.canonical_q_obs
         else "q as integrated (either sign)",  # fmt: skip
         noise="none in the evaluation protocol",
+        memory=memory_spec(cfg) if cfg.observation.obs_memory else None,
+    )
+
+
+def memory_spec(cfg: EnvConfig) -> dict:
+    """How a deployment keeps the observation's memory parts (``obs_memory``) from step to step."""
+    leak = math.exp(-cfg.control_dt / cfg.observation.memory_tau)
+    return dict(
+        reset="last_action = 0 (4), error_integral = 0 (3) at the start of a flight",
+        last_action="after each control step: the action the policy output (clipped to [-1, 1])",
+        error_integral=(
+            "after each control step, with p the measured position and p_d the reference at that "
+            f"time: error_integral = leak * error_integral + dt * (p_d - p), leak = exp(-dt / tau) = "
+            f"{leak!r}, dt = {cfg.control_dt!r} s, tau = {cfg.observation.memory_tau!r} s"
+        ),
+        leak=leak,
+        dt_s=cfg.control_dt,
     )
 
 
@@ -230,6 +251,18 @@ def expected_errors(run_dir: str, seed: int, epoch: int) -> dict:
     return {k: rows[-1][v] for k, v in names.items() if v in rows[-1]}
 
 
+def trained_under(cfg: EnvConfig) -> dict:
+    """What the training episodes drew and flew in, beyond the nominal vehicle: the domain
+    randomisation (ranges, each drawn per episode; factors on the vehicle above, latency in s,
+    bias ± m per axis or a fixed vector, wind mean ± m/s² per axis), the disturbances, and the
+    track mixture (``wide_mix``: weights of the families, empty: the paper's mixture)."""
+    r = dataclasses.asdict(cfg.randomization)
+    return dict(randomization=r, randomized=rz.active(cfg),
+                disturbances=dataclasses.asdict(cfg.disturbances),
+                wide_mix=dict(zip(FAMILIES, cfg.tracks.wide_mix, strict=True)) if cfg.tracks.wide_mix else {},
+                action_map="of the nominal vehicle above: thrust and rate errors are not in it")  # fmt: skip
+
+
 def sidecar(run_dir: str, run: runs.LoadedRun, seed: int, best: bool, obs_size: int) -> dict:
     """``policy.json``: what the policy reads and writes, at what rate, for which vehicle, and
     every fact a re-implementation needs to fly it and reproduce its tracking error."""
@@ -242,6 +275,7 @@ def sidecar(run_dir: str, run: runs.LoadedRun, seed: int, best: bool, obs_size: 
                 action_repeat=cfg.action_repeat, physics_dt_s=cfg.dt, vehicle=dataclasses.asdict(quad),
                 rate_model=dict(name=quad.rate_model, meaning=RATE_MODEL_MEANING[quad.rate_model]),
                 evaluation_protocol=PROTOCOL, test_tracks=TEST_TRACKS,
+                trained_under=trained_under(cfg), evaluated_on=[vehicle_of(quad) or "custom"],
                 expected_tracking_error=dict(sum_norm_e_m=expected_errors(run_dir, seed, epoch),
                                              protocol="evaluation_protocol above, float32"),
                 source=dict(run=os.path.basename(os.path.normpath(run_dir)), seed=seed, epoch=epoch,

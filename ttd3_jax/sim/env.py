@@ -169,7 +169,7 @@ class MemoryTrackingState(TrackingState):
     """The state of an env with ``obs_memory`` (a subclass, like the delayed one)."""
 
     last_action: jax.Array  # (4,) the action applied by the last step (zeros at reset)
-    err_int: jax.Array  # (3,) m·s, leaky ∫(p_d − p) dt
+    err_int: jax.Array  # (3,) m·s, leaky ∫(p_d − p) dt of the observed p
 
 
 @struct.dataclass
@@ -181,7 +181,7 @@ class RandomizedTrackingState(TrackingState):
     plant: rz.Plant
     pending: jax.Array  # (M, 4) the last M commanded actions, newest first (hover at reset)
     last_action: jax.Array  # (4,) the action the last step commanded (zeros at reset)
-    err_int: jax.Array  # (3,) m·s, leaky ∫(p_d − p) dt (obs_memory)
+    err_int: jax.Array  # (3,) m·s, leaky ∫(p_d − p) dt of the observed p (obs_memory)
 
 
 def commanded_lags(cfg: EnvConfig, latency: jax.Array) -> jax.Array:
@@ -361,10 +361,8 @@ class TrackingEnv(Env):
         if self._randomized:
             ps = ps.replace(last_action=a)
         if c.observation.obs_memory:
-            leak = math.exp(-c.control_dt / c.observation.memory_tau)
-            err_int = leak * ps.err_int + c.control_dt * _zero_non_finite(p_ref - quad.p)
-            ps = ps.replace(last_action=a, err_int=err_int)
-        obs, ps = self.observe(ps, p_ref)
+            ps = ps.replace(last_action=a)
+        obs, ps = self.observe(ps, p_ref, integrate=True)
         f = reward.dtype
         a_norm2 = jnp.sum(a * a)
         # Σ_k ||e_k|| (m) over the physics steps, Σ ||a||, Σ aᵀa; keeping keys that wrappers added
@@ -432,9 +430,12 @@ class TrackingEnv(Env):
         )
         return QuadState(p=p, v=v, q=q, w=jnp.zeros(3, f))
 
-    def observe(self, ps: TrackingState, p_ref_now: jax.Array | None = None):
+    def observe(self, ps: TrackingState, p_ref_now: jax.Array | None = None, integrate: bool = False):
         """Observation (O1), and the state with its noise key advanced and ``ref_next``
-        refreshed.  ``p_ref_now`` may pass p_d(k) when the caller already has it."""
+        refreshed.  ``p_ref_now`` may pass p_d(k) when the caller already has it.
+        ``integrate`` (after a step, with ``obs_memory``): first add this control step to the
+        leaky error integral, from the *observed* position (noise and bias included, as a
+        vehicle would integrate it), never the true one."""
         c = self.config
         x = ps.quad
         p, v, q = x.p, x.v, x.q
@@ -455,6 +456,10 @@ class TrackingEnv(Env):
             ps = ps.replace(key=key)
         if self._randomized and rz.has_pos_bias(c):
             p = p + ps.plant.pos_bias  # the observed position's bias (before the track-frame shift)
+        if integrate and c.observation.obs_memory:
+            leak = math.exp(-c.control_dt / c.observation.memory_tau)
+            p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
+            ps = ps.replace(err_int=leak * ps.err_int + c.control_dt * _zero_non_finite(p_now - p))
         if c.observation.canonical_q_obs:
             q = jnp.where(q[0] < 0, -q, q)
         p_ahead = tr.position(ps.track, ps.k + c.observation.lookahead_k, c.dt)
