@@ -121,8 +121,7 @@ def evaluate_configs(build: Build, theta, configs: dict[str, EnvConfig], los_see
     evaluation config of ``configs`` (``{name: summary}``), one compiled batch each, with the
     keys of :func:`evaluate_robustness`; ``progress(name, summary)`` is called after each."""
     los_seeds = tuple(los_seeds)
-    base = jax.random.PRNGKey(seed)
-    keys = jnp.stack([jax.random.fold_in(base, i) for i in range(len(los_seeds) + 1)])
+    keys = condition_keys(len(los_seeds), seed)
     out = {}
     for name, c in configs.items():
         ev = Evaluator(TrackingEnv(c), build, sequential=sequential)
@@ -130,3 +129,10 @@ def evaluate_configs(build: Build, theta, configs: dict[str, EnvConfig], los_see
         if progress is not None:
             progress(name, out[name])
     return out
+
+
+def condition_keys(num_los_seeds: int, seed: int = 0) -> jax.Array:
+    """The wind and noise keys of one condition's batch (Spiral-RT, then ``num_los_seeds``
+    LOS-RT tracks): ``fold_in(PRNGKey(seed), i)``, as :func:`evaluate_configs` uses them."""
+    base = jax.random.PRNGKey(seed)
+    return jnp.stack([jax.random.fold_in(base, i) for i in range(num_los_seeds + 1)])
