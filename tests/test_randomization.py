@@ -14,9 +14,10 @@ from tiny import tiny
 
 from ttd3_jax import spec as sp
 from ttd3_jax.sim import randomization as rz
+from ttd3_jax.sim.action_map import hover_action
 from ttd3_jax.sim.config import PLANT_NEUTRAL, make_config
 from ttd3_jax.sim.dynamics import QuadParams
-from ttd3_jax.sim.env import RandomizedTrackingState, TrackingEnv, TrackingState, hover_action
+from ttd3_jax.sim.env import RandomizedTrackingState, TrackingEnv, TrackingState
 from ttd3_jax.td3 import trainer as T
 
 G = 9.81

@@ -10,7 +10,8 @@ import pytest
 
 from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.dynamics import QuadParams
-from ttd3_jax.sim.env import TrackingEnv, vehicle_arrays
+from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.randomization import vehicle_arrays
 
 N_ENVS, N_STEPS = 4, 200
 

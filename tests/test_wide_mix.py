@@ -25,7 +25,8 @@ from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import track_families as tf
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import make_config
-from ttd3_jax.sim.env import TrackingEnv, num_validation_tracks, validation_tracks
+from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.track_mixture import num_validation_tracks, validation_tracks
 from ttd3_jax.td3.trainer import seed_keys
 
 DT = 1e-3

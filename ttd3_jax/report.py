@@ -13,7 +13,7 @@ import numpy as np
 
 from ttd3_jax.control.evaluator import Trace
 from ttd3_jax.control.paper import PAPER, PAPER_TTD3
-from ttd3_jax.sim.env import yaw_of
+from ttd3_jax.sim.dynamics import yaw_of
 
 TRACK_TITLES = {"spiral_rt": "Spiral-RT", "los_rt": "LOS-RT"}
 

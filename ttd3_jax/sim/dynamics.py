@@ -165,6 +165,12 @@ def body_z(q: jax.Array) -> jax.Array:
     return jnp.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], -1)
 
 
+def yaw_of(q: jax.Array) -> jax.Array:
+    """Yaw ψ (rad) of the scalar-first unit quaternion ``q`` (z-y-x Euler angles)."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return jnp.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
 def quat_rate(q: jax.Array, w: jax.Array) -> jax.Array:
     """``q̇ = ½ Λ(ω) q`` (spec D2) with body rates ``w`` (3,): equals ``½ q ⊗ [0, ω]``."""
     qw, qx, qy, qz = q[0], q[1], q[2], q[3]

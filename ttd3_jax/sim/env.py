@@ -39,8 +39,8 @@ with contextlib.redirect_stdout(io.StringIO()):
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import observation, rng
 from ttd3_jax.sim import randomization as rz
-from ttd3_jax.sim import track_families as tf
 from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim.action_map import action_to_control, hover_action
 from ttd3_jax.sim.config import PRIVILEGED_AHEAD_S, EnvConfig, make_config
 from ttd3_jax.sim.dynamics import (
     QuadParams,
@@ -49,6 +49,12 @@ from ttd3_jax.sim.dynamics import (
     quat_from_axis_angle,
     quat_mul,
     rk4_step,
+)
+from ttd3_jax.sim.track_mixture import (
+    mixture_num_segments,
+    mixture_track,
+    num_validation_tracks,
+    validation_tracks,
 )
 
 _USER_TAG = 0x05E7  # folded into a reset's track key to pick users' training tracks
@@ -61,87 +67,6 @@ def error_cost(cfg: EnvConfig, e: jax.Array) -> jax.Array:
     if cfg.reward.err_cost == "squared":
         return e * e
     return jnp.where(e * e <= 1.0, e, e * e)
-
-
-def thrust_range(cfg: EnvConfig):
-    """``(min, max, hover)`` collective thrust of the action map (N, or the thrust units)."""
-    q = cfg.vehicle.quad
-    hover = q.hover_thrust
-    if cfg.vehicle.thrust_map_mass is not None and q.thrust_units == "newton":
-        hover = q.gravity * cfg.vehicle.thrust_map_mass
-    return q.thrust_min, q.thrust_max, hover
-
-
-def action_to_control(cfg: EnvConfig, a: jax.Array) -> jax.Array:
-    """Normalised action (..., 4) in [-1, 1] -> physical control ``[thrust, ω_cmd]`` (O2).
-
-    Default: thrust = f_min + (a0 + 1)/2 (f_max - f_min); rates affine onto
-    [rate_min, rate_max].  ``hover_centered_thrust`` maps a0 = 0 to the hover thrust.
-    """
-    lo, hi, hover = thrust_range(cfg)
-    a0 = a[..., 0]
-    if cfg.vehicle.hover_centered_thrust:
-        f = jnp.where(a0 >= 0, hover + a0 * (hi - hover), hover + a0 * (hover - lo))
-    else:
-        f = lo + 0.5 * (a0 + 1.0) * (hi - lo)
-    rlo, rhi = cfg.vehicle.quad.rate_min, cfg.vehicle.quad.rate_max
-    w = rlo + 0.5 * (a[..., 1:] + 1.0) * (rhi - rlo)
-    return jnp.concatenate([f[..., None], w], -1)
-
-
-def control_to_action(cfg: EnvConfig, u: jax.Array) -> jax.Array:
-    """Inverse of :func:`action_to_control` (for controllers with physical outputs)."""
-    lo, hi, hover = thrust_range(cfg)
-    f = u[..., 0]
-    if cfg.vehicle.hover_centered_thrust:
-        a0 = jnp.where(f >= hover, (f - hover) / (hi - hover), (f - hover) / (hover - lo))
-    else:
-        a0 = 2.0 * (f - lo) / (hi - lo) - 1.0
-    rlo, rhi = cfg.vehicle.quad.rate_min, cfg.vehicle.quad.rate_max
-    aw = 2.0 * (u[..., 1:] - rlo) / (rhi - rlo) - 1.0
-    return jnp.concatenate([a0[..., None], aw], -1)
-
-
-def hover_action(cfg: EnvConfig) -> jax.Array:
-    """Normalised action that holds hover (a0 = 0.4715 with the paper's numbers).  With
-    ``thrust_map_mass`` set: the hover action of that (nominal) mass."""
-    u = jnp.array([thrust_range(cfg)[2], 0.0, 0.0, 0.0])
-    return control_to_action(cfg, u)
-
-
-def mixture_num_segments(cfg: EnvConfig) -> int:
-    """Track-table size of the training mixture and the validation tracks of ``cfg``: the paper
-    mixture's, or the wide mixture's when ``tracks.wide_mix`` is set (users' tracks may need more)."""
-    if cfg.tracks.wide_mix:
-        return tf.wide_num_segments(cfg.horizon_steps, cfg.dt)
-    return tr.train_num_segments(cfg.horizon_steps, cfg.dt)
-
-
-def mixture_track(cfg: EnvConfig, rng: jax.Array, num_segments: int) -> tr.Track:
-    """A track of the training mixture of ``cfg`` drawn from ``rng``: the paper's
-    (``trajectories.sample_train_track``) or, with ``tracks.wide_mix`` set, the wide one
-    (``track_families.sample_wide_track``)."""
-    t = cfg.tracks
-    if t.wide_mix:
-        return tf.sample_wide_track(rng, t.wide_mix, cfg.dt, cfg.horizon_steps, num_segments, cfg=t.generator)
-    return tr.sample_train_track(rng, t.generator, cfg.dt, cfg.horizon_steps, num_segments)
-
-
-def validation_tracks(cfg: EnvConfig, num_segments: int | None = None) -> tr.Track:
-    """The fixed validation tracks of ``cfg`` (batched; the only tracks a policy is selected
-    on): the paper mixture's 10, or the wide mixture's (``track_families.wide_validation_tracks``,
-    2 per family of positive weight) when ``tracks.wide_mix`` is set."""
-    t, n = cfg.tracks, num_segments or mixture_num_segments(cfg)
-    if t.wide_mix:
-        return tf.wide_validation_tracks(t.wide_mix, cfg.dt, cfg.horizon_steps, n, cfg=t.generator)
-    return tr.validation_tracks(t.generator, cfg.dt, cfg.horizon_steps, n)
-
-
-def num_validation_tracks(cfg: EnvConfig) -> int:
-    """How many tracks :func:`validation_tracks` holds."""
-    if cfg.tracks.wide_mix:
-        return len(tf.wide_validation_families(cfg.tracks.wide_mix))
-    return tr.NUM_VALIDATION_TRACKS
 
 
 @struct.dataclass
@@ -184,14 +109,6 @@ class RandomizedTrackingState(TrackingState):
     err_int: jax.Array  # (3,) m·s, leaky ∫(p_d − p) dt of the observed p (obs_memory)
 
 
-def commanded_lags(cfg: EnvConfig, latency: jax.Array) -> jax.Array:
-    """(action_repeat,) int: for each physics substep j of a control step, how many control
-    steps ago the command it applies was given, ceil((latency − j) / action_repeat) >= 0."""
-    r = cfg.action_repeat
-    j = jnp.arange(r, dtype=jnp.int32)
-    return jnp.clip((latency - j + r - 1) // r, 0, rz.pending_size(cfg))
-
-
 def last_applied_action(cfg: EnvConfig, ps: TrackingState, a: jax.Array) -> jax.Array:
     """The normalised action that the last physics step of the next control step applies,
     when ``a`` (4,) is commanded from state ``ps``: ``a`` clipped, the previous one under
@@ -199,7 +116,7 @@ def last_applied_action(cfg: EnvConfig, ps: TrackingState, a: jax.Array) -> jax.
     a = jnp.clip(a, -1.0, 1.0)
     if isinstance(ps, RandomizedTrackingState):
         stack = jnp.concatenate([a[None].astype(ps.pending.dtype), ps.pending])
-        return stack[commanded_lags(cfg, ps.plant.latency)[-1]]
+        return stack[rz.commanded_lags(cfg, ps.plant.latency)[-1]]
     if cfg.disturbances.action_delay:
         return ps.prev_action
     return a
@@ -271,7 +188,7 @@ class TrackingEnv(Env):
 
     def reset_with_track(self, rng: jax.Array, track: tr.Track, vehicle: QuadParams | None = None) -> State:
         """New episode on a given track (used by evaluation over many tracks), flying
-        ``vehicle`` (:func:`vehicle_arrays`; None: the config's ``quad``, read as constants)."""
+        ``vehicle`` (``randomization.vehicle_arrays``; None: the config's ``quad``, as constants)."""
         c = self.config
         k_init, k_wind, k_next = jax.random.split(rng, 3)
         quad = self._initial_state(k_init, tr.position(track, 0, c.dt))
@@ -296,7 +213,7 @@ class TrackingEnv(Env):
         metrics = {"tracking_error": zero, "energy": zero, "energy_sq": zero, "crashed": zero}
         info = {"truncation": zero, "terminated": zero}
         if vehicle is not None:  # only then: a nominal env keeps its state's layout (and checkpoints)
-            info["vehicle"] = vehicle_arrays(vehicle, f)
+            info["vehicle"] = rz.vehicle_arrays(vehicle, f)
         return State(pipeline_state=ps, obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
 
     def step(self, state: State, action: jax.Array) -> State:
@@ -331,7 +248,7 @@ class TrackingEnv(Env):
         plant, m = ps.plant, rz.pending_size(c)
         if m:  # substep j applies the command given commanded_lags[j] control steps ago
             stack = jnp.concatenate([a[None], ps.pending])
-            u = action_to_control(c, stack[commanded_lags(c, plant.latency)])  # (R, 4)
+            u = action_to_control(c, stack[rz.commanded_lags(c, plant.latency)])  # (R, 4)
             ps = ps.replace(pending=stack[:m])
         else:
             u = jnp.broadcast_to(action_to_control(c, a), (c.action_repeat, 4))
@@ -490,14 +407,6 @@ class TrackingEnv(Env):
         return _zero_non_finite(self.layout.build(parts, jnp.concatenate)), ps
 
 
-def vehicle_arrays(quad: QuadParams, dtype=None) -> QuadParams:
-    """``quad`` with every numeric field a JAX scalar of ``dtype`` (the state's float type):
-    what an env state carries as its vehicle.  Stack several (``jax.tree.map(jnp.stack)``)
-    and vmap ``reset_with_track`` over them to fly a different vehicle in each env."""
-    dtype = dtype or jnp.zeros(()).dtype
-    return jax.tree.map(lambda x: jnp.asarray(x, dtype), quad)
-
-
 def ou_wind_step(c: EnvConfig, wind: jax.Array, key: jax.Array):
     """One physics step (``c.dt``) of the OU wind acceleration ``wind`` (3,) m/s², with
     stationary std ``c.disturbances.wind_sigma`` and correlation time ``c.disturbances.wind_tau``; returns
@@ -506,12 +415,6 @@ def ou_wind_step(c: EnvConfig, wind: jax.Array, key: jax.Array):
     phi = math.exp(-c.dt / c.disturbances.wind_tau)
     xi = rng.normal(sub, (3,), wind.dtype)
     return phi * wind + c.disturbances.wind_sigma * math.sqrt(1.0 - phi * phi) * xi, key
-
-
-def yaw_of(q: jax.Array) -> jax.Array:
-    """Yaw ψ (rad) of the scalar-first unit quaternion ``q`` (z-y-x Euler angles)."""
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    return jnp.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 @jax.custom_jvp

@@ -81,9 +81,16 @@ def flown_rate_model(cfg: EnvConfig) -> str:
     return q.rate_model
 
 
+def vehicle_arrays(quad: QuadParams, dtype=None) -> QuadParams:
+    """``quad`` with every numeric field a JAX scalar of ``dtype`` (the state's float type):
+    what an env state carries as its vehicle.  Stack several (``jax.tree.map(jnp.stack)``)
+    and vmap ``reset_with_track`` over them to fly a different vehicle in each env."""
+    dtype = dtype or jnp.zeros(()).dtype
+    return jax.tree.map(lambda x: jnp.asarray(x, dtype), quad)
+
+
 def _as_arrays(quad: QuadParams, rate_model: str, dtype) -> QuadParams:
-    quad = jax.tree.map(lambda x: jnp.asarray(x, dtype), quad)
-    return quad.replace(rate_model=rate_model)
+    return vehicle_arrays(quad, dtype).replace(rate_model=rate_model)
 
 
 def nominal(cfg: EnvConfig, quad: QuadParams | None = None, dtype=None) -> Plant:
@@ -132,3 +139,11 @@ def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=N
         ),
         wind_mean=uni(9, (-r.wind_mean, r.wind_mean), (3,)),
     )
+
+
+def commanded_lags(cfg: EnvConfig, latency: jax.Array) -> jax.Array:
+    """(action_repeat,) int: for each physics substep j of a control step, how many control
+    steps ago the command it applies was given, ceil((latency − j) / action_repeat) >= 0."""
+    r = cfg.action_repeat
+    j = jnp.arange(r, dtype=jnp.int32)
+    return jnp.clip((latency - j + r - 1) // r, 0, pending_size(cfg))
