@@ -17,6 +17,7 @@ from tiny import TINY_CLI
 
 from ttd3_jax import checkpoint as ckpt
 from ttd3_jax import runs
+from ttd3_jax import spec as sp
 from ttd3_jax.cache import default_compile_cache, use_compile_cache
 from ttd3_jax.train import main
 
@@ -41,7 +42,7 @@ from ttd3_jax.train import main
         ),
         (
             ["--preset", "quick"],
-            r"--preset must be one of \('fast', 'fast_dpg', 'fast_model_free', 'paper', 'mujoco'\)",
+            "--preset must be one of " + re.escape(str(sp.PRESETS)) + ", got 'quick'",
         ),
         (["--resume", "/nonexistent/run"], "not a ttd3_jax run directory"),
         (
