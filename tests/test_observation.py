@@ -81,3 +81,24 @@ def test_the_error_integral_integrates_the_observed_position_as_policy_json_says
         want = mem["leak"] * before + mem["dt_s"] * -p_rel
         np.testing.assert_allclose(np.asarray(s.obs[lay.slice("error_integral")]), want, rtol=1e-5, atol=1e-7)
         np.testing.assert_array_equal(np.asarray(s.obs[lay.slice("last_action")]), np.asarray(a))
+
+
+def test_observe_rates_shows_the_flown_body_rates_on_an_instant_vehicle():
+    """``observe_rates``: ω in the observation of an ``instant`` vehicle, where it is the last
+    rate command, and the lagging body rates once a randomised rate time constant flies it."""
+    from ttd3_jax.sim.action_map import action_to_control
+
+    cfg = make_config("practical", observe_rates=True, randomize_init=False)
+    assert observation.layout(cfg).has("omega")
+    assert not observation.layout(make_config("practical")).has("omega")
+    a = jnp.array([0.0, 0.5, -0.3, 0.2])
+    w_cmd = np.asarray(action_to_control(cfg, a)[1:])
+    for tau, lags in ((1.0, False), (2.0, True)):  # factor on tau_rate 0.03 s: 0.06 s lags
+        c = cfg.replace(tau_rate=(tau, tau)) if lags else cfg
+        env = TrackingEnv(c)
+        s = env.step(env.reset(jax.random.PRNGKey(0)), a)
+        w = np.asarray(s.obs[observation.layout(c).slice("omega")])
+        if lags:  # first-order: 1 - exp(-0.01 / 0.06) = 15 % of the command after 10 ms
+            np.testing.assert_allclose(w, w_cmd * (1 - np.exp(-0.01 / 0.06)), rtol=1e-3)
+        else:
+            np.testing.assert_allclose(w, w_cmd, rtol=1e-6)

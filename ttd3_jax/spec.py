@@ -42,6 +42,7 @@ ADDED_FIELDS = {
     # 2026-12-06: domain randomisation drawn per episode (sim.randomization), neutral: the nominal plant
     **{("task", name): (4, list(v) if isinstance(v, tuple) else v) for name, v in PLANT_NEUTRAL.items()},
     ("task", "wide_mix"): (4, []),  # issue 37: the wide training mixture
+    ("task", "observe_rates"): (4, False),  # issue 37: ω observed on an instant vehicle
 }
 
 

@@ -77,6 +77,9 @@ class ObservationConfig:
     # appended last, for the critics only (the actor sees the observation without them):
     # the wind acceleration (3, m/s²) and p_d 0.5 s and 1 s after p_d,k+L, relative to it (6, m)
     obs_privileged: bool = False
+    # observe the body rates ω (a gyro) on an ``instant`` vehicle too, where they are the last
+    # command unless a randomised plant lags them (``first_order`` and ``torque`` always do)
+    observe_rates: bool = False
 
     def __post_init__(self):
         f = lambda name: _where("observation", name)  # noqa: E731
@@ -84,7 +87,7 @@ class ObservationConfig:
         checks.integer(f("lookahead_k"), self.lookahead_k, 1)
         checks.one_of(f("err_ref"), self.err_ref, ERR_REFS)
         checks.one_of(f("obs_frame"), self.obs_frame, OBS_FRAMES)
-        for name in ("canonical_q_obs", "obs_memory", "obs_privileged"):
+        for name in ("canonical_q_obs", "obs_memory", "obs_privileged", "observe_rates"):
             checks.boolean(f(name), getattr(self, name))
 
 
