@@ -154,7 +154,7 @@ def test_no_suite_or_test_track_is_trained_on_through_the_env():
 
 def test_a_format_3_config_json_gets_the_paper_mixture():
     d = json.loads(json.dumps(sp.to_dict(tiny())))
-    assert d["format"] == sp.CONFIG_FORMAT == 4 and d["task"]["tracks"]["wide_mix"] == []
+    assert d["format"] == sp.CONFIG_FORMAT and d["task"]["tracks"]["wide_mix"] == []
     del d["task"]["tracks"]["wide_mix"]
     assert sp.from_dict({**d, "format": 3}) == tiny()  # grouped task: filled in its group
     with pytest.raises(ValueError, match='"task.tracks.wide_mix" is missing'):
