@@ -90,7 +90,7 @@ class _NoLookup(TrackingEnv):
         if wrong or noisy or self.layout.has("omega"):
             raise ValueError(f"{type(self).__name__} stands in for the nominal env only; got {wrong}")
 
-    def observe(self, ps, p_ref_now=None):
+    def observe(self, ps, p_ref_now=None, integrate=False):  # (nominal env: no memory to integrate)
         x = ps.quad
         q = jnp.where(x.q[0] < 0, -x.q, x.q)
         p_ahead = self.position(ps.track, ps.k + 1, self.config.dt)
@@ -103,7 +103,7 @@ class _NoLookup(TrackingEnv):
 class _NoObs(TrackingEnv):
     position = staticmethod(tr.position)
 
-    def observe(self, ps, p_ref_now=None):
+    def observe(self, ps, p_ref_now=None, integrate=False):  # (nominal env: no memory to integrate)
         ps = ps.replace(ref_next=self.position(ps.track, ps.k + 1, self.config.dt))
         return jnp.zeros(self.observation_size, ps.quad.p.dtype).at[0].set(ps.quad.p[0]), ps
 
