@@ -157,11 +157,12 @@ class TrackingEnv(Env):
     episode_length = property(lambda self: self.config.episode_length)
     num_segments = property(lambda self: self._n_seg)
 
-    def reset(self, rng: jax.Array, vehicle: QuadParams | None = None) -> State:
+    def reset(self, rng: jax.Array, vehicle: QuadParams | None = None, progress=None) -> State:
         """New episode: a track drawn per ``config.tracks.track`` and an initial state (R5), flying
-        ``vehicle`` (None: the config's ``quad``; see :meth:`reset_with_track`)."""
+        ``vehicle`` (None: the config's ``quad``; see :meth:`reset_with_track`).  ``progress``:
+        the fraction of the training run done, for the randomisation's curriculum."""
         k_track, k_rest = jax.random.split(rng)
-        return self.reset_with_track(k_rest, self.sample_track(k_track), vehicle)
+        return self.reset_with_track(k_rest, self.sample_track(k_track), vehicle, progress)
 
     def sample_track(self, rng: jax.Array) -> tr.Track:
         """The track an episode uses under ``config.tracks.track``."""
@@ -186,9 +187,11 @@ class TrackingEnv(Env):
             c.tracks.los_seed, c.tracks.generator, num_segments=n, dt=c.dt, horizon_steps=c.horizon_steps
         )
 
-    def reset_with_track(self, rng: jax.Array, track: tr.Track, vehicle: QuadParams | None = None) -> State:
+    def reset_with_track(self, rng: jax.Array, track: tr.Track, vehicle: QuadParams | None = None,
+                         progress=None) -> State:  # fmt: skip
         """New episode on a given track (used by evaluation over many tracks), flying
-        ``vehicle`` (``randomization.vehicle_arrays``; None: the config's ``quad``, as constants)."""
+        ``vehicle`` (``randomization.vehicle_arrays``; None: the config's ``quad``, as constants),
+        with the plant's ranges at ``progress`` of the curriculum (None: full)."""
         c = self.config
         k_init, k_wind, k_next = jax.random.split(rng, 3)
         quad = self._initial_state(k_init, tr.position(track, 0, c.dt))
@@ -200,8 +203,9 @@ class TrackingEnv(Env):
         fields["ref_next"] = jnp.zeros(3, f)
         if self._randomized:  # the plant, drawn around ``vehicle`` (a key folded off rng's other draws)
             pending = jnp.broadcast_to(hover_action(c).astype(f), (rz.pending_size(c), 4))
-            ps = RandomizedTrackingState(**fields, plant=rz.draw(c, rng, vehicle, f), pending=pending,
-                                         last_action=jnp.zeros(4, f), err_int=jnp.zeros(3, f))  # fmt: skip
+            plant = rz.draw(c, rng, vehicle, f, rz.curriculum_scale(c, progress))
+            ps = RandomizedTrackingState(**fields, plant=plant, pending=pending, last_action=jnp.zeros(4, f),
+                                         err_int=jnp.zeros(3, f))  # fmt: skip
         elif c.disturbances.action_delay:
             ps = DelayedTrackingState(**fields, prev_action=hover_action(c).astype(f))
         elif c.observation.obs_memory:

@@ -105,16 +105,35 @@ def nominal(cfg: EnvConfig, quad: QuadParams | None = None, dtype=None) -> Plant
                  wind_mean=zero3)  # fmt: skip
 
 
-def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=None) -> Plant:
+def curriculum_scale(cfg: EnvConfig, progress: jax.Array | None) -> jax.Array | None:
+    """The width of the plant ranges at ``progress`` (the fraction of the training run done):
+    min(1, progress / ``randomization.curriculum``); ``None`` (the full ranges) without a
+    curriculum or a progress."""
+    if progress is None or cfg.randomization.curriculum == 0:
+        return None
+    return jnp.minimum(1.0, jnp.asarray(progress) / cfg.randomization.curriculum)
+
+
+def _narrowed(rng, neutral: float, scale):
+    """The range ``rng`` shrunk towards ``neutral`` to ``scale`` of its width (None: as it is)."""
+    if scale is None:
+        return rng
+    return tuple(neutral + scale * (x - neutral) for x in rng)
+
+
+def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=None, scale=None) -> Plant:
     """A plant drawn from ``cfg.randomization``'s ranges around ``quad`` (None: the config's
-    vehicle), each uniform; ``key`` is folded with :data:`PLANT_TAG` first."""
+    vehicle), each uniform; ``key`` is folded with :data:`PLANT_TAG` first.  ``scale`` (the
+    curriculum's, :func:`curriculum_scale`; None: 1) shrinks every range towards the nominal
+    plant without errors: factors towards 1, latency, bias, mean wind and the noise factor
+    towards 0."""
     r = cfg.randomization
     dtype = dtype or jnp.zeros(()).dtype
     quad = _as_arrays(cfg.vehicle.quad if quad is None else quad, flown_rate_model(cfg), dtype)
     k = jax.random.split(jax.random.fold_in(key, PLANT_TAG), 10)
 
-    def uni(i, rng, shape=()):
-        lo, hi = rng
+    def uni(i, rng, shape=(), neutral=1.0):
+        lo, hi = _narrowed(rng, neutral, scale)
         return lo + (hi - lo) * jax.random.uniform(k[i], shape, dtype)
 
     rate = uni(4, r.rate_limit)
@@ -128,16 +147,22 @@ def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=N
         rate_max=quad.rate_max * rate,
     )
     lo, hi = latency_steps(cfg)
+    if scale is not None:  # towards the action_delay steps alone
+        extra = cfg.disturbances.action_delay * cfg.action_repeat
+        lo, hi = (extra + jnp.round(scale * (x - extra)).astype(jnp.int32) for x in (lo, hi))
     latency = jax.random.randint(k[5], (), lo, hi + 1, jnp.int32)
+    bias = (
+        jnp.asarray(r.pos_bias, dtype)
+        if fixed_pos_bias(cfg)
+        else uni(8, (-r.pos_bias, r.pos_bias), (3,), 0.0)
+    )
     return Plant(
         quad=quad,
         thrust_gain=uni(6, r.thrust_gain),
         latency=latency,
-        noise_scale=uni(7, r.obs_noise),
-        pos_bias=(
-            jnp.asarray(r.pos_bias, dtype) if fixed_pos_bias(cfg) else uni(8, (-r.pos_bias, r.pos_bias), (3,))
-        ),
-        wind_mean=uni(9, (-r.wind_mean, r.wind_mean), (3,)),
+        noise_scale=uni(7, r.obs_noise, neutral=0.0),
+        pos_bias=bias if scale is None or not fixed_pos_bias(cfg) else scale * bias,
+        wind_mean=uni(9, (-r.wind_mean, r.wind_mean), (3,), 0.0),
     )
 
 

@@ -86,22 +86,32 @@ def _where(mask, a, b):
     return jax.tree.map(lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
 
 
-def env_step(s: Setup, env_state, ep_return, *, hp: Hyper, actions: jax.Array, key: jax.Array):
-    """Step all envs with ``actions`` and auto-reset finished ones (fresh track and start).
+def reset_envs(s: Setup, key: jax.Array, n_tr: jax.Array) -> object:
+    """Fresh episodes for all envs; an env with a curriculum (``EnvSpec.curriculum``) is told
+    the fraction of the run done, ``n_tr`` / ``transitions_run``."""
+    keys = jax.random.split(key, s.config.num_envs)
+    if not s.env.curriculum:
+        return jax.vmap(s.env.env.reset)(keys)
+    progress = n_tr / s.config.transitions_run
+    return jax.vmap(lambda k: s.env.env.reset(k, progress=progress))(keys)
+
+
+def env_step(s: Setup, env_state, ep_return, *, hp: Hyper, actions: jax.Array, key: jax.Array, n_tr):
+    """Step all envs with ``actions`` and auto-reset finished ones (fresh track and start, at
+    ``n_tr`` transitions collected: :func:`reset_envs`).
 
     Returns the new env state, the :class:`~ttd3_jax.td3.buffer.Transition` (true next
     observation, ``terminated`` apart from truncation, the reward scaled by
     ``hp.reward_scale``: the one place it is), the running episode returns (unscaled: the
     env's units) and the :class:`Finished` episodes."""
-    env, n = s.env.env, s.config.num_envs
-    nxt = jax.vmap(env.step)(env_state, actions)
+    nxt = jax.vmap(s.env.env.step)(env_state, actions)
     reward = hp.reward_scale * nxt.reward
     tr = rb.Transition(obs=env_state.obs, action=actions, reward=reward, next_obs=nxt.obs,
                        terminated=nxt.info["terminated"], done=nxt.done)  # fmt: skip
     done = nxt.done > 0
     ep_return = ep_return + nxt.reward
     finished = Finished(jnp.sum(jnp.where(done, ep_return, 0.0)), jnp.sum(done))
-    reset = lambda: _where(done, jax.vmap(env.reset)(jax.random.split(key, n)), nxt)  # noqa: E731
+    reset = lambda: _where(done, reset_envs(s, key, n_tr), nxt)  # noqa: E731
     new_state = jax.lax.cond(jnp.any(done), reset, lambda: nxt)
     return new_state, tr, jnp.where(done, 0.0, ep_return), finished
 
@@ -116,7 +126,7 @@ def collect(s: Setup, ts: TrainState, hp: Hyper, actions: jax.Array, key: jax.Ar
     """Step all envs with ``actions``, store the transitions, auto-reset finished envs;
     returns the state and the :class:`Finished` episodes."""
     env_state, tr, ep_return, finished = env_step(s, ts.env_state, ts.ep_return, hp=hp, actions=actions,
-                                                  key=key)  # fmt: skip
+                                                  key=key, n_tr=ts.n_tr)  # fmt: skip
     return store(s, ts.replace(env_state=env_state, ep_return=ep_return), tr), finished
 
 

@@ -42,7 +42,7 @@ def model_loss(s: Setup, actor, ts: TrainState, hp: Hyper, key: jax.Array):
         k_noise, k_reset = jax.random.split(k)
         pi = nn.policy(s.nets, actor, stats, state.obs)
         a = jnp.clip(pi + std * jax.random.normal(k_noise, pi.shape), -1.0, 1.0)
-        state, tr, ep_ret, f = env_step(s, state, ep_ret, hp=hp, actions=a, key=k_reset)
+        state, tr, ep_ret, f = env_step(s, state, ep_ret, hp=hp, actions=a, key=k_reset, n_tr=ts.n_tr)
         ret = ret + disc * alive * tr.reward
         fin = Finished(fin.return_sum + f.return_sum, fin.count + f.count)
         carry = (state, ep_ret, alive * (1.0 - tr.done), disc * hp.gamma, ret, fin)

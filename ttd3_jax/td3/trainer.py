@@ -23,7 +23,7 @@ from ttd3_jax.td3 import dpg, model_based
 from ttd3_jax.td3 import networks as nn
 from ttd3_jax.td3 import noise as nz
 from ttd3_jax.td3.config import Hyper, TrainConfig
-from ttd3_jax.td3.dpg import Setup, TrainState, collect, obs_stats, with_lr
+from ttd3_jax.td3.dpg import Setup, TrainState, collect, obs_stats, reset_envs, with_lr
 from ttd3_jax.td3.env_spec import EnvSpec
 
 StepFn = Callable[[Setup, TrainState, Hyper], tuple]  # (s, ts, hp) -> (ts, (StepMetrics, Finished))
@@ -54,7 +54,7 @@ def init(s: Setup, key: jax.Array, hp: Hyper) -> TrainState:
         actor_opt=with_lr(s.adam.init(actor), hp.lr_actor),
         critic_opt=with_lr(s.adam.init(critic), hp.lr_critic),
         buffer=rb.init(c.buffer_capacity, env.obs_size, env.action_size),
-        env_state=jax.vmap(env.env.reset)(jax.random.split(k_env, n)), ep_return=jnp.zeros(n),
+        env_state=reset_envs(s, k_env, zero), ep_return=jnp.zeros(n),
         obs_stats=nn.init_obs_stats(env.obs_size), noise=nz.init(hp, c.time_attenuating), key=k_run,
         n_tr=zero, n_upd=zero,
     )  # fmt: skip
