@@ -196,7 +196,7 @@ def test_the_migration_knows_only_the_fields_added_later():
         sp.from_dict(legacy)  # no history: refused
     with pytest.raises(ValueError, match="format 7 is not one this version reads"):
         sp.from_dict({**d, "format": 7})
-    assert sp.CONFIG_FORMAT == 5
+    assert sp.CONFIG_FORMAT == 6
 
 
 def test_every_committed_run_spec_loads():

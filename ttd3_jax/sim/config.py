@@ -13,6 +13,8 @@ from ttd3_jax import checks
 from ttd3_jax.sim import track_families as tf
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.dynamics import QuadParams, validate_params
+from ttd3_jax.sim.vehicle_mix import flown_as
+from ttd3_jax.sim.vehicles import VEHICLE_NAMES
 
 TRACK_MODES = ("train", "validation", "spiral_rt", "los_rt")
 ERR_REFS = ("current", "next")
@@ -198,9 +200,17 @@ class RandomizationConfig:
     pos_bias: float | tuple[float, float, float] = 0.0  # m, ± per axis: a constant bias of the observed
     #   position; a 3-tuple instead is that bias itself, the same every episode (robustness rows)
     wind_mean: float = 0.0  # m/s², ± per axis: a constant wind acceleration added to the OU wind
+    # () = the config's vehicle; two of sim.vehicles.VEHICLE_NAMES: each episode flies one between them, known
+    # to the policy (sim.vehicle_mix); quad then gives only rate_model, gravity, thrust_units. (a, a): a alone
+    vehicles: tuple[str, ...] = ()
 
     def __post_init__(self):
         f = lambda name: _where("randomization", name)  # noqa: E731
+        v = self.vehicles
+        if not (isinstance(v, tuple | list) and len(v) in (0, 2) and all(n in VEHICLE_NAMES for n in v)):
+            checks.fail(f("vehicles"), f"() or two names of {VEHICLE_NAMES} (a policy for both and every "
+                        "vehicle between them)", v)  # fmt: skip
+        object.__setattr__(self, "vehicles", tuple(v))
         checks.boolean(f("randomize_init"), self.randomize_init)
         for name in ("init_pos", "init_vel", "init_tilt_deg", "init_yaw_deg", "wind_mean"):
             checks.number(f(name), getattr(self, name), 0)
@@ -303,10 +313,22 @@ class EnvConfig:
         level, no early termination, no observation noise, optional wind, and one crash
         threshold for every controller (``e_max = EVAL_CRASH_M``), and the nominal plant (no
         domain randomisation: ``PLANT_NEUTRAL``).  It sets the fields in
-        ``EVAL_PROTOCOL_FIELDS`` (``episode_steps`` stays: 3000, the paper's)."""
+        ``EVAL_PROTOCOL_FIELDS`` (``episode_steps`` stays: 3000, the paper's), and with
+        ``randomization.vehicles`` flies the first of them (:func:`pin_vehicle`; pin another first)."""
         quiet = dict(randomize_init=False, terminate=False, e_max=EVAL_CRASH_M, obs_noise_pos=0.0,
                      obs_noise_vel=0.0, obs_noise_quat=0.0, **PLANT_NEUTRAL)  # fmt: skip
-        return self.replace(track=track, los_seed=los_seed, wind_sigma=wind_sigma, **quiet)
+        return pin_vehicle(self).replace(track=track, los_seed=los_seed, wind_sigma=wind_sigma, **quiet)
+
+
+def pin_vehicle(cfg: EnvConfig, name: str | None = None) -> EnvConfig:
+    """``cfg`` flying ``name`` (None: the first) of its ``randomization.vehicles`` every episode:
+    vehicles (name, name), quad that vehicle (``vehicle_mix.flown_as``); the observation's layout
+    and the shared action map stay.  ``cfg`` as it is without ``vehicles``."""
+    v = cfg.randomization.vehicles
+    if v and name is not None and name not in v:
+        checks.fail("vehicle", f"one of EnvConfig.randomization.vehicles {v}", name)
+    name = name or (v[0] if v else None)
+    return cfg.replace(vehicles=(name, name), quad=flown_as(name, cfg.vehicle.quad)) if v else cfg
 
 
 def _replace(cfg: EnvConfig, **changes) -> EnvConfig:
@@ -376,8 +398,22 @@ def plant_is_nominal(r: RandomizationConfig) -> bool:
 
 
 def _validate_plant(c: EnvConfig) -> None:
-    """The checks of the randomised plant across groups: the flown vehicle must hover."""
-    r, q = c.randomization, c.vehicle.quad
+    """The checks of the randomised plant across groups: the flown vehicle must hover (each end of
+    ``vehicles``: thrust-to-weight is geometric between them), in the shared units with ``vehicles``."""
+    r, v = c.randomization, c.vehicle
+    need = [n for ok, n in ((v.hover_centered_thrust, "vehicle.hover_centered_thrust true"),
+                            (v.thrust_map_mass is None, "vehicle.thrust_map_mass None"),
+                            (v.quad.thrust_units == "newton", "vehicle.quad.thrust_units 'newton'"))
+            if not ok]  # fmt: skip
+    if r.vehicles and need:
+        raise ValueError(f"EnvConfig.randomization.vehicles {r.vehicles} needs {need[0]} (the units they "
+                         "share: a0 = 0 is each vehicle's own hover thrust)")  # fmt: skip
+    for q in [flown_as(n, v.quad) for n in dict.fromkeys(r.vehicles)] or [v.quad]:
+        _validate_hover(c, q)
+
+
+def _validate_hover(c: EnvConfig, q: QuadParams) -> None:
+    r = c.randomization
     if tuple(r.tau_rate) != PLANT_NEUTRAL["tau_rate"] and q.rate_model == "torque":
         checks.fail("EnvConfig.randomization.tau_rate", "(1.0, 1.0) with rate_model 'torque' (which has no "
                     "time constant; randomise inertia)", r.tau_rate)  # fmt: skip
