@@ -157,7 +157,7 @@ def flat_task(task: dict) -> dict:
 def test_a_format_2_file_with_the_flat_task_loads_grouped():
     d = json.loads(json.dumps(sp.to_dict(tiny())))
     two = {**d, "format": 2, "task": flat_task(d["task"])}
-    assert len(two["task"]) == 52 and sp.from_dict(two) == tiny()
+    assert len(two["task"]) == 53 and sp.from_dict(two) == tiny()
     two["task"]["wind_sigma"], two["task"]["tracks"]["los_climb_rate"] = 0.3, 0.2
     task = sp.from_dict(two).task
     assert task.disturbances.wind_sigma == 0.3 and task.tracks.generator.los_climb_rate == 0.2
