@@ -11,7 +11,8 @@ Observation at physics step k (raw units, O1), the parts of :func:`ttd3_jax.sim.
 
 with L = ``lookahead_k`` (1 in the paper) and k' = k (``err_ref="current"``) or k+1.
 ``obs_frame="track"`` moves the origin of the two absolute positions to p_d,k.
-``obs_memory`` and ``obs_privileged`` append the parts the layout names after these.
+``obs_memory``, ``randomization.vehicles`` (the known vehicle) and ``obs_privileged`` append the
+parts the layout names after these.
 Reward per physics step, with e' = ||p_d,k+1 - p_k+1|| after the step (R1-R3)::
 
     r = -rho1 * r_e(e') - rho2 * aᵀ Ω a,   r_e(e) = e if e² <= 1 else e²
