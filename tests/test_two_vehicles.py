@@ -27,7 +27,7 @@ from ttd3_jax.sharding import per_seed
 from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim import vehicle_mix as vm
 from ttd3_jax.sim.action_map import action_to_control
-from ttd3_jax.sim.config import make_config, pin_vehicle
+from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.env import TrackingEnv
 from ttd3_jax.sim.vehicles import CRAZYFLIE, VEHICLES
 from ttd3_jax.td3 import networks
@@ -93,7 +93,7 @@ def test_the_actor_observes_the_known_vehicle():
     assert env.layout.describe()[-1]["name"] == "vehicle" and part.stop == env.actor_observation_size
     s = env.reset(jax.random.PRNGKey(3))
     np.testing.assert_array_equal(s.obs[part], vm.descriptor(s.pipeline_state.plant.nominal))
-    cf = TrackingEnv(pin_vehicle(two(), "crazyflie").for_eval("spiral_rt")).reset(jax.random.PRNGKey(0))
+    cf = TrackingEnv(vm.pin_vehicle(two(), "crazyflie").for_eval("spiral_rt")).reset(jax.random.PRNGKey(0))
     tw = CRAZYFLIE.thrust_max / (0.027 * 9.81)
     np.testing.assert_allclose(
         cf.obs[part], [tw - 1, math.log(CF_RATE / 6.0), math.log(0.072 / 0.03)], rtol=1e-6
@@ -124,7 +124,7 @@ def test_bad_vehicles_are_refused_naming_the_field(kw, match):
         make_config("practical", **kw)
     assert "\n" not in str(e.value)
     with pytest.raises(ValueError, match="vehicle must be one of EnvConfig.randomization.vehicles"):
-        pin_vehicle(
+        vm.pin_vehicle(
             make_config("practical", hover_centered_thrust=True, vehicles=("paper", "paper")), "crazyflie"
         )
 
@@ -215,7 +215,7 @@ def test_the_c_header_flies_both_vehicles_from_the_same_weights(two_vehicle_run,
     ptr = lambda x: x.ctypes.data_as(ctypes.c_void_p)  # noqa: E731
     actions = {}
     for i, name in enumerate(BOTH):
-        cfg = pin_vehicle(loaded.env_config, name).for_eval("spiral_rt")
+        cfg = vm.pin_vehicle(loaded.env_config, name).for_eval("spiral_rt")
         env = TrackingEnv(cfg)
         obs = np.asarray(env.reset(jax.random.PRNGKey(0)).obs, np.float32)  # the descriptor of ``name``
         blank = obs.copy()

@@ -39,15 +39,9 @@ from ttd3_jax.control.paper import PAPER
 from ttd3_jax.control.robustness import ROBUSTNESS_DESCRIPTIONS, evaluate_robustness
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import trajectories as tr
-from ttd3_jax.sim.config import (
-    EVAL_CRASH_M,
-    EVAL_PROTOCOL_FIELDS,
-    PRESETS,
-    EnvConfig,
-    make_config,
-    pin_vehicle,
-)
+from ttd3_jax.sim.config import EVAL_CRASH_M, EVAL_PROTOCOL_FIELDS, PRESETS, EnvConfig, make_config
 from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.vehicle_mix import pin_vehicle
 from ttd3_jax.sim.vehicles import VEHICLE_NAMES, vehicle_of, with_vehicle
 
 _NMPC_OPTIONS = (("horizon", "nmpc_horizon"), ("solve_every", "nmpc_solve_every"),

@@ -25,7 +25,7 @@ from ttd3_jax.sim import observation
 from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim import vehicle_mix as vm
 from ttd3_jax.sim.action_map import thrust_range
-from ttd3_jax.sim.config import EnvConfig, pin_vehicle
+from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.track_families import FAMILIES
 from ttd3_jax.sim.vehicles import vehicle_of
 from ttd3_jax.td3 import networks
@@ -313,7 +313,7 @@ def vehicles_spec(cfg: EnvConfig) -> dict | None:
         return None
     per = {}
     for name in dict.fromkeys(mix):
-        c = pin_vehicle(cfg, name)
+        c = vm.pin_vehicle(cfg, name)
         d = vm.descriptor(rz.vehicle_arrays(c.vehicle.quad, jnp.float32))
         per[name] = dict(descriptor=[float(x) for x in np.asarray(d)], action_map=action_map(c),
                          vehicle=dataclasses.asdict(c.vehicle.quad))  # fmt: skip
@@ -332,7 +332,7 @@ def vehicles_spec(cfg: EnvConfig) -> dict | None:
 def sidecar(run_dir: str, run: runs.LoadedRun, seed: int, best: bool, obs_size: int) -> dict:
     """``policy.json``: what the policy reads and writes, at what rate, for which vehicle, and
     every fact a re-implementation needs to fly it and reproduce its tracking error."""
-    cfg = pin_vehicle(run.env_config)  # with vehicles: the first (each one's: vehicles_spec)
+    cfg = vm.pin_vehicle(run.env_config)  # with vehicles: the first (each one's: vehicles_spec)
     quad, mix = cfg.vehicle.quad, run.env_config.randomization.vehicles
     epoch = run.epoch[seed] if isinstance(run.epoch, dict) else run.epoch
     return dict(observation=observation_layout(cfg, obs_size), obs_size=obs_size,

@@ -16,10 +16,11 @@ from flax import struct
 from ttd3_jax.sim import observation
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.action_map import action_to_control, control_to_action, hover_action
-from ttd3_jax.sim.config import EnvConfig, pin_vehicle
+from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.dynamics import QuadState
 from ttd3_jax.sim.env import TrackingEnv, last_applied_action
 from ttd3_jax.sim.track_mixture import validation_tracks
+from ttd3_jax.sim.vehicle_mix import pin_vehicle
 
 
 class Controller(NamedTuple):

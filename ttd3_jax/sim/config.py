@@ -12,8 +12,8 @@ import os
 from ttd3_jax import checks
 from ttd3_jax.sim import track_families as tf
 from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim import vehicle_mix as vm
 from ttd3_jax.sim.dynamics import QuadParams, validate_params
-from ttd3_jax.sim.vehicle_mix import flown_as
 from ttd3_jax.sim.vehicles import VEHICLE_NAMES
 
 TRACK_MODES = ("train", "validation", "spiral_rt", "los_rt")
@@ -314,21 +314,10 @@ class EnvConfig:
         threshold for every controller (``e_max = EVAL_CRASH_M``), and the nominal plant (no
         domain randomisation: ``PLANT_NEUTRAL``).  It sets the fields in
         ``EVAL_PROTOCOL_FIELDS`` (``episode_steps`` stays: 3000, the paper's), and with
-        ``randomization.vehicles`` flies the first of them (:func:`pin_vehicle`; pin another first)."""
+        ``randomization.vehicles`` flies the first of them (``vehicle_mix.pin_vehicle``: another)."""
         quiet = dict(randomize_init=False, terminate=False, e_max=EVAL_CRASH_M, obs_noise_pos=0.0,
                      obs_noise_vel=0.0, obs_noise_quat=0.0, **PLANT_NEUTRAL)  # fmt: skip
-        return pin_vehicle(self).replace(track=track, los_seed=los_seed, wind_sigma=wind_sigma, **quiet)
-
-
-def pin_vehicle(cfg: EnvConfig, name: str | None = None) -> EnvConfig:
-    """``cfg`` flying ``name`` (None: the first) of its ``randomization.vehicles`` every episode:
-    vehicles (name, name), quad that vehicle (``vehicle_mix.flown_as``); the observation's layout
-    and the shared action map stay.  ``cfg`` as it is without ``vehicles``."""
-    v = cfg.randomization.vehicles
-    if v and name is not None and name not in v:
-        checks.fail("vehicle", f"one of EnvConfig.randomization.vehicles {v}", name)
-    name = name or (v[0] if v else None)
-    return cfg.replace(vehicles=(name, name), quad=flown_as(name, cfg.vehicle.quad)) if v else cfg
+        return vm.pin_vehicle(self).replace(track=track, los_seed=los_seed, wind_sigma=wind_sigma, **quiet)
 
 
 def _replace(cfg: EnvConfig, **changes) -> EnvConfig:
@@ -401,14 +390,9 @@ def _validate_plant(c: EnvConfig) -> None:
     """The checks of the randomised plant across groups: the flown vehicle must hover (each end of
     ``vehicles``: thrust-to-weight is geometric between them), in the shared units with ``vehicles``."""
     r, v = c.randomization, c.vehicle
-    need = [n for ok, n in ((v.hover_centered_thrust, "vehicle.hover_centered_thrust true"),
-                            (v.thrust_map_mass is None, "vehicle.thrust_map_mass None"),
-                            (v.quad.thrust_units == "newton", "vehicle.quad.thrust_units 'newton'"))
-            if not ok]  # fmt: skip
-    if r.vehicles and need:
-        raise ValueError(f"EnvConfig.randomization.vehicles {r.vehicles} needs {need[0]} (the units they "
-                         "share: a0 = 0 is each vehicle's own hover thrust)")  # fmt: skip
-    for q in [flown_as(n, v.quad) for n in dict.fromkeys(r.vehicles)] or [v.quad]:
+    if r.vehicles:
+        vm.check_units(c)
+    for q in [vm.flown_as(n, v.quad) for n in dict.fromkeys(r.vehicles)] or [v.quad]:
         _validate_hover(c, q)
 
 

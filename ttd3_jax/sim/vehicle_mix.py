@@ -11,9 +11,10 @@ the controller: the action map is its own (hover-centred thrust: a0 = 0 is its h
 fractions of its limits; ``sim.action_map``), and the actor observes its :func:`descriptor`.  The
 randomisation's factors (mass, thrust gain, ...) then apply on top of it, unknown, as they do
 around the config's vehicle.  ``(a, a)`` is vehicle ``a`` alone in the same units: what
-evaluation flies (``sim.config.pin_vehicle``).
+evaluation flies (:func:`pin_vehicle`).
 
-Layer ``sim``: imports the dynamics and the vehicle presets, no config (the config imports it).
+Layer ``sim``: imports the dynamics and the vehicle presets, no config (the config imports it:
+the functions that take an ``EnvConfig`` read it without naming its type).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from ttd3_jax import checks
 from ttd3_jax.sim.dynamics import QuadParams
 from ttd3_jax.sim.vehicles import VEHICLES
 
@@ -40,6 +42,30 @@ def flown_as(name: str, like: QuadParams) -> QuadParams:
     return VEHICLES[name].replace(
         gravity=like.gravity, rate_model=like.rate_model, thrust_units=like.thrust_units
     )
+
+
+def pin_vehicle(cfg, name: str | None = None):
+    """The ``EnvConfig`` ``cfg`` flying ``name`` (None: the first) of its ``randomization.vehicles``
+    every episode: vehicles (name, name), quad that vehicle (:func:`flown_as`); the observation's
+    layout and the shared action map stay.  ``cfg`` as it is without ``vehicles``."""
+    v = cfg.randomization.vehicles
+    if v and name is not None and name not in v:
+        checks.fail("vehicle", f"one of EnvConfig.randomization.vehicles {v}", name)
+    name = name or (v[0] if v else None)
+    return cfg.replace(vehicles=(name, name), quad=flown_as(name, cfg.vehicle.quad)) if v else cfg
+
+
+def check_units(cfg) -> None:
+    """``randomization.vehicles`` of the ``EnvConfig`` ``cfg`` needs the units the vehicles share:
+    hover-centred thrust, each vehicle's own hover (no ``thrust_map_mass``), newtons."""
+    v = cfg.vehicle
+    need = [n for ok, n in ((v.hover_centered_thrust, "vehicle.hover_centered_thrust true"),
+                            (v.thrust_map_mass is None, "vehicle.thrust_map_mass None"),
+                            (v.quad.thrust_units == "newton", "vehicle.quad.thrust_units 'newton'"))
+            if not ok]  # fmt: skip
+    if need:
+        raise ValueError(f"EnvConfig.randomization.vehicles {cfg.randomization.vehicles} needs {need[0]} "
+                         "(the units they share: a0 = 0 is each vehicle's own hover thrust)")  # fmt: skip
 
 
 def _between(x: float, y: float, s: jax.Array) -> jax.Array:
