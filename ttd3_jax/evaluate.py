@@ -7,6 +7,7 @@ suite: the table, run times, optional robustness, JSON, plots and trace CSVs.
     python -m ttd3_jax.evaluate --controller geometric --task.vehicle.quad.mass 1.8   # any EnvConfig field
     python -m ttd3_jax.evaluate --controller nmpc --vehicle crazyflie     # a named vehicle (sim.vehicles)
     python -m ttd3_jax.evaluate RUN_DIR [--epoch E | --best] [--seed-index I] [--robustness]
+    python -m ttd3_jax.evaluate RUN_DIR --vehicle crazyflie   # one of its --task.randomization.vehicles
     python -m ttd3_jax.evaluate RUN_DIR --track my_track.csv      # header t,x,y,z[,vx,vy,vz,ax,ay,az]
     python -m ttd3_jax.evaluate --controller nmpc --suite generalization
 """
@@ -40,6 +41,7 @@ from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import EVAL_CRASH_M, EVAL_PROTOCOL_FIELDS, PRESETS, EnvConfig, make_config
 from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.vehicle_mix import pin_vehicle
 from ttd3_jax.sim.vehicles import VEHICLE_NAMES, vehicle_of, with_vehicle
 
 _NMPC_OPTIONS = (("horizon", "nmpc_horizon"), ("solve_every", "nmpc_solve_every"),
@@ -63,7 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
     add("--seed-index", type=int, default=None, help="only this seed of RUN_DIR (default: all)")
     add("--preset", default=None, choices=PRESETS, help="env preset of --controller (default paper)")
     add("--vehicle", default=None, choices=VEHICLE_NAMES, help="vehicle of --controller's env (default "
-        "paper; --task.vehicle.quad.* on top); with RUN_DIR only the run's own vehicle")  # fmt: skip
+        "paper; --task.vehicle.quad.* on top); with RUN_DIR the run's own vehicle, or one of its "
+        "--task.randomization.vehicles (default: the first)")  # fmt: skip
     add(
         "--track",
         default="all",
@@ -155,14 +158,19 @@ class _Task:
 
 
 def check_run_vehicle(ap: argparse.ArgumentParser, args) -> None:
-    """``--vehicle`` with RUN_DIR: accepted only when it names the run's own vehicle."""
+    """``--vehicle`` with RUN_DIR: accepted only when it names the run's own vehicle, or one
+    of its ``randomization.vehicles`` (the run's policy flies each)."""
     if args.vehicle is None:
         return
     try:
-        own = vehicle_of(runs.load_spec(args.run_dir).task.vehicle.quad)
+        task = runs.load_spec(args.run_dir).task
     except (FileNotFoundError, ValueError) as e:
         ap.error(str(e))
-    if own != args.vehicle:
+    own, mix = vehicle_of(task.vehicle.quad), task.randomization.vehicles
+    if mix and args.vehicle not in mix:
+        ap.error(f"--vehicle {args.vehicle} is not one of RUN_DIR's --task.randomization.vehicles "
+                 f"{list(mix)}, which its policy was trained on")  # fmt: skip
+    if not mix and own != args.vehicle:
         ap.error(f"--vehicle {args.vehicle} does not match RUN_DIR's vehicle ({own or 'a custom vehicle'}), "
                  "which its policy was trained on; remove --vehicle")  # fmt: skip
 
@@ -193,13 +201,16 @@ def policies(args) -> tuple:
     if args.seed_index is not None and not 0 <= args.seed_index < len(run.thetas):
         raise ValueError(f"--seed-index must be in [0, {len(run.thetas) - 1}], got {args.seed_index}")
     thetas = run.thetas if args.seed_index is None else [run.thetas[args.seed_index]]
-    s = run.spec
+    s, mix = run.spec, run.spec.task.randomization.vehicles
     which = f"selected on the validation tracks, epochs {run.epoch}" if args.best else f"epoch {run.epoch}"
-    own = vehicle_of(s.task.vehicle.quad) or "custom"
-    print(f"run {args.run_dir} {which} ({s.algo}, vehicle {own}, hover_centered_thrust="
+    cfg = pin_vehicle(run.env_config, args.vehicle if mix else None)  # one of the run's vehicles
+    own = cfg.randomization.vehicles[0] if mix else vehicle_of(s.task.vehicle.quad) or "custom"
+    trained = f" of the vehicles {' to '.join(mix)} it was trained on" if mix else ""
+    print(f"run {args.run_dir} {which} ({s.algo}, vehicle {own}{trained}, hover_centered_thrust="
           f"{s.task.vehicle.hover_centered_thrust})")  # fmt: skip
-    header = dict(run_dir=args.run_dir, epoch=run.epoch, algo=s.algo, vehicle=own)
-    return run.env_config, run.build, {f"seed {seed}": theta for seed, theta in thetas}, header
+    header = dict(run_dir=args.run_dir, epoch=run.epoch, algo=s.algo, vehicle=own,
+                  **({"trained_vehicles": list(mix)} if mix else {}))  # fmt: skip
+    return cfg, run.build, {f"seed {seed}": theta for seed, theta in thetas}, header
 
 
 def classical(args, options: dict) -> tuple:

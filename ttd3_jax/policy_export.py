@@ -17,11 +17,13 @@ import os
 from importlib import metadata
 from typing import NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
 from ttd3_jax import runs
 from ttd3_jax.sim import observation
 from ttd3_jax.sim import randomization as rz
+from ttd3_jax.sim import vehicle_mix as vm
 from ttd3_jax.sim.action_map import thrust_range
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.track_families import FAMILIES
@@ -114,11 +116,12 @@ def _c_array(name: str, x: np.ndarray) -> str:
     return f"static const float {name}[{x.size}] = {{{values}}};"
 
 
-def c_header(p: Policy, note: str = "") -> str:
+def c_header(p: Policy, note: str = "", vehicles: dict | None = None) -> str:
     """C99 source of ``void ttd3_policy_forward(const float *obs, float *action)`` (also
     reachable as ``policy_forward`` unless ``TTD3_NO_SHORT_NAMES`` is defined). Every other
-    symbol starts with ``ttd3_``; the weights are ``static const float`` arrays, row-major
-    (n_in, n_out), so the header can go into firmware with no library."""
+    symbol starts with ``ttd3_`` (or ``TTD3_``); the weights are ``static const float`` arrays,
+    row-major (n_in, n_out), so the header can go into firmware with no library.  ``vehicles``
+    (``policy.json``'s, :func:`vehicles_spec`): each vehicle's constants too (:func:`c_vehicles`)."""
     n_obs, n_act = p.layers[0][0].shape[0], p.layers[-1][0].shape[1]
     widest = max(w.shape[1] for w, _ in p.layers)
     clip = f"{networks.CLIP:.1f}"
@@ -128,6 +131,7 @@ def c_header(p: Policy, note: str = "") -> str:
            "", _c_array("ttd3_obs_mean", p.mean), _c_array("ttd3_obs_std", p.std)]  # fmt: skip
     for i, (w, b) in enumerate(p.layers):
         out += [_c_array(f"ttd3_w{i}", w), _c_array(f"ttd3_b{i}", b)]
+    out += c_vehicles(vehicles) if vehicles else []
     out += ["", "/* action[TTD3_ACTION_SIZE] in [-1, 1] from the raw observation obs[TTD3_OBS_SIZE] */",
             "static void ttd3_policy_forward(const float *obs, float *action) {",
             f"  float x[{widest if widest > n_obs else n_obs}], y[{widest}];", "  int i, j;",
@@ -147,6 +151,38 @@ def c_header(p: Policy, note: str = "") -> str:
     out += ["}", "#ifndef TTD3_NO_SHORT_NAMES", "#define policy_forward ttd3_policy_forward", "#endif",
             "#endif /* TTD3_POLICY_H */", ""]  # fmt: skip
     return "\n".join(out)
+
+
+def c_vehicles(v: dict) -> list[str]:
+    """The C constants of a policy for several vehicles (``policy.json``'s ``vehicles``): one
+    array per vehicle, ``TTD3_VEHICLE_<NAME>`` = its descriptor, then its action map's thrust
+    min, hover, max (N) and body-rate min, max (rad/s); ``ttd3_set_vehicle`` copies the
+    descriptor into the observation, ``ttd3_action_to_control`` maps an action on that vehicle."""
+    start, n = v["descriptor_start"], len(v["descriptor_entries"])
+    names, entries = ", ".join(v["per_vehicle"]), "; ".join(v["descriptor_entries"])
+    out = ["", f"/* One policy for the vehicles {names} (policy.json: vehicles). Before each call of",
+           "   ttd3_policy_forward, ttd3_set_vehicle(obs, TTD3_VEHICLE_<NAME>) writes the flown vehicle's",
+           f"   descriptor into obs[{start}..{start + n - 1}] ({entries});",
+           "   ttd3_action_to_control(TTD3_VEHICLE_<NAME>, action, control) maps the action on that vehicle:",
+           "   control = thrust (N), body rates (rad/s). TTD3_VEHICLE_<NAME>: the descriptor, then thrust",
+           "   min, hover, max (N), body-rate min, max (rad/s). */",
+           f"#define TTD3_VEHICLE_OFFSET {start}", f"#define TTD3_VEHICLE_DESCRIPTOR_SIZE {n}",
+           f"#define TTD3_VEHICLE_SIZE {n + 5}"]  # fmt: skip
+    for name, d in v["per_vehicle"].items():
+        t, r = d["action_map"]["thrust_N"], d["action_map"]["body_rates_rad_s"]
+        values = [*d["descriptor"], t["min"], t["hover"], t["max"], r["min"][0], r["max"][0]]
+        out.append(_c_array(f"TTD3_VEHICLE_{name.upper()}", np.asarray(values)))
+    return out + [
+        "static inline void ttd3_set_vehicle(float *obs, const float *vehicle) {", "  int i;",
+        f"  for (i = 0; i < {n}; ++i) obs[{start} + i] = vehicle[i];", "}",
+        "static inline void ttd3_action_to_control(const float *vehicle, const float *action,",
+        "                                          float *control) {",
+        f"  const float lo = vehicle[{n}], hover = vehicle[{n + 1}], hi = vehicle[{n + 2}];",
+        f"  const float rlo = vehicle[{n + 3}], rhi = vehicle[{n + 4}];", "  int i;",
+        "  control[0] = action[0] >= 0.0f ? hover + action[0] * (hi - hover)",
+        "                                 : hover + action[0] * (hover - lo);",
+        "  for (i = 1; i < 4; ++i) control[i] = rlo + 0.5f * (action[i] + 1.0f) * (rhi - rlo);", "}",
+    ]  # fmt: skip
 
 
 def observation_layout(cfg: EnvConfig, obs_size: int) -> list[str]:
@@ -257,17 +293,47 @@ def trained_under(cfg: EnvConfig) -> dict:
     bias ± m per axis or a fixed vector, wind mean ± m/s² per axis), the disturbances, and the
     track mixture (``wide_mix``: weights of the families, empty: the paper's mixture)."""
     r = dataclasses.asdict(cfg.randomization)
+    known = (
+        "each drawn vehicle's own (vehicles below)"
+        if cfg.randomization.vehicles
+        else "the nominal vehicle above"
+    )
     return dict(randomization=r, randomized=rz.active(cfg),
                 disturbances=dataclasses.asdict(cfg.disturbances),
                 wide_mix=dict(zip(FAMILIES, cfg.tracks.wide_mix, strict=True)) if cfg.tracks.wide_mix else {},
-                action_map="of the nominal vehicle above: thrust and rate errors are not in it")  # fmt: skip
+                action_map=f"of {known}: thrust and rate errors are not in it")  # fmt: skip
+
+
+def vehicles_spec(cfg: EnvConfig) -> dict | None:
+    """``policy.json``'s ``vehicles`` of a policy trained with ``randomization.vehicles`` (else
+    None): where the observation holds the flown vehicle's descriptor, and each vehicle's
+    descriptor values (float32, as the env computes them), action map and parameters."""
+    mix = cfg.randomization.vehicles
+    if not mix:
+        return None
+    per = {}
+    for name in dict.fromkeys(mix):
+        c = vm.pin_vehicle(cfg, name)
+        d = vm.descriptor(rz.vehicle_arrays(c.vehicle.quad, jnp.float32))
+        per[name] = dict(descriptor=[float(x) for x in np.asarray(d)], action_map=action_map(c),
+                         vehicle=dataclasses.asdict(c.vehicle.quad))  # fmt: skip
+    return dict(descriptor_start=observation.layout(cfg).slice("vehicle").start,
+                descriptor_entries=list(vm.DESCRIPTOR), meaning=vm.DESCRIPTOR_MEANING,
+                trained_on=f"each episode drew s ~ U[0, 1] and flew the vehicle between {mix[0]} (s = 0) and "
+                f"{mix[1]} (s = 1), every parameter geometric between theirs; the randomisation's factors "
+                "(trained_under) around it, unknown",
+                use="fill obs[descriptor_start:descriptor_start + 3] with the flown vehicle's descriptor and "
+                "map the action with its action_map (policy.h: ttd3_set_vehicle, ttd3_action_to_control); "
+                "the top-level vehicle and action_map are the first vehicle's, and so are the Spiral-RT and "
+                "LOS-RT figures of expected_tracking_error (its validation_mean: the mean over the vehicles)",
+                per_vehicle=per)  # fmt: skip
 
 
 def sidecar(run_dir: str, run: runs.LoadedRun, seed: int, best: bool, obs_size: int) -> dict:
     """``policy.json``: what the policy reads and writes, at what rate, for which vehicle, and
     every fact a re-implementation needs to fly it and reproduce its tracking error."""
-    cfg = run.env_config
-    quad = cfg.vehicle.quad
+    cfg = vm.pin_vehicle(run.env_config)  # with vehicles: the first (each one's: vehicles_spec)
+    quad, mix = cfg.vehicle.quad, run.env_config.randomization.vehicles
     epoch = run.epoch[seed] if isinstance(run.epoch, dict) else run.epoch
     return dict(observation=observation_layout(cfg, obs_size), obs_size=obs_size,
                 observation_spec=observation_spec(cfg, obs_size), conventions=CONVENTIONS,
@@ -275,7 +341,8 @@ def sidecar(run_dir: str, run: runs.LoadedRun, seed: int, best: bool, obs_size: 
                 action_repeat=cfg.action_repeat, physics_dt_s=cfg.dt, vehicle=dataclasses.asdict(quad),
                 rate_model=dict(name=quad.rate_model, meaning=RATE_MODEL_MEANING[quad.rate_model]),
                 evaluation_protocol=PROTOCOL, test_tracks=TEST_TRACKS,
-                trained_under=trained_under(cfg), evaluated_on=[vehicle_of(quad) or "custom"],
+                trained_under=trained_under(run.env_config), vehicles=vehicles_spec(run.env_config),
+                evaluated_on=list(dict.fromkeys(mix)) or [vehicle_of(quad) or "custom"],
                 expected_tracking_error=dict(sum_norm_e_m=expected_errors(run_dir, seed, epoch),
                                              protocol="evaluation_protocol above, float32"),
                 source=dict(run=os.path.basename(os.path.normpath(run_dir)), seed=seed, epoch=epoch,
@@ -291,7 +358,8 @@ def write(out: str, p: Policy, meta: dict, onnx: bool = True) -> list[str]:
     are built before any is written, so a policy that cannot be exported (non-finite weights:
     ``ValueError``) leaves ``out`` as it was."""
     src = meta["source"]
-    files = {"policy.h": c_header(p, f"run {src['run']}, seed {src['seed']}, epoch {src['epoch']}").encode(),
+    note = f"run {src['run']}, seed {src['seed']}, epoch {src['epoch']}"
+    files = {"policy.h": c_header(p, note, meta.get("vehicles")).encode(),
              "policy.json": json.dumps(meta, indent=2).encode()}  # fmt: skip
     if onnx:
         files = {"policy.onnx": onnx_model(p).SerializeToString(), **files}

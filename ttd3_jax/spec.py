@@ -44,6 +44,7 @@ ADDED_FIELDS = {
     ("task", "wide_mix"): (4, []),  # issue 37: the wide training mixture
     ("task", "observe_rates"): (5, False),  # issue 37: ω observed on an instant vehicle
     ("task", "curriculum"): (6, 0.0),  # issue 37: the randomisation's curriculum
+    ("task", "vehicles"): (6, []),  # issue 37: one policy for the vehicles between two (sim.vehicle_mix)
 }
 
 

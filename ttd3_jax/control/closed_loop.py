@@ -20,6 +20,7 @@ from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.dynamics import QuadState
 from ttd3_jax.sim.env import TrackingEnv, last_applied_action
 from ttd3_jax.sim.track_mixture import validation_tracks
+from ttd3_jax.sim.vehicle_mix import pin_vehicle
 
 
 class Controller(NamedTuple):
@@ -116,7 +117,7 @@ def to_paper_map(actions, cfg: EnvConfig) -> np.ndarray:
     """Normalised actions (..., 4) of an env with config ``cfg`` in the paper's action map
     (O2: thrust f_min + (a0+1)/2·(f_max − f_min), no hover centring): the same physical
     commands, so controllers trained or built with different maps become comparable."""
-    paper = cfg.replace(hover_centered_thrust=False, thrust_map_mass=None)
+    paper = cfg.replace(hover_centered_thrust=False, thrust_map_mass=None, vehicles=())  # quad: a pinned one
     return np.asarray(control_to_action(paper, action_to_control(cfg, jnp.asarray(actions))))
 
 
@@ -156,13 +157,18 @@ def test_and_validation_metrics(cfg: EnvConfig, controller: Controller) -> dict:
     and LOS-RT seed 0 (``spiral_*``, ``los_*``), in one vmapped closed loop, and
     ``val_tracking_error``, the mean Σ‖e‖ over the validation tracks (spec T8; the wide
     mixture's with ``tracks.wide_mix`` set: ``sim.track_mixture.validation_tracks``), the only figure
-    used to select a policy.  ``controller`` is built for the env of ``cfg``."""
+    used to select a policy.  ``controller`` is built for the env of ``cfg``.  With
+    ``randomization.vehicles``: the test metrics of the first vehicle, and the validation mean
+    averaged over each vehicle's (one policy is selected for all of them)."""
     env = TrackingEnv(cfg.for_eval("los_rt"))
     m = evaluate_on_tracks(env, controller, test_tracks(env))
     out = {}
     for i, name in enumerate(("spiral", "los")):
         out.update({f"{name}_{k}": v[i] for k, v in m.items()})
-    venv = TrackingEnv(cfg.for_eval("validation"))
-    val = validation_tracks(cfg, venv.num_segments)
-    out["val_tracking_error"] = jnp.mean(evaluate_on_tracks(venv, controller, val)["tracking_error"])
+    vals = []
+    for vehicle in dict.fromkeys(cfg.randomization.vehicles) or (None,):
+        venv = TrackingEnv(pin_vehicle(cfg, vehicle).for_eval("validation"))
+        val = validation_tracks(cfg, venv.num_segments)
+        vals.append(jnp.mean(evaluate_on_tracks(venv, controller, val)["tracking_error"]))
+    out["val_tracking_error"] = vals[0] if len(vals) == 1 else jnp.mean(jnp.stack(vals))
     return out

@@ -12,7 +12,9 @@ import os
 from ttd3_jax import checks
 from ttd3_jax.sim import track_families as tf
 from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim import vehicle_mix as vm
 from ttd3_jax.sim.dynamics import QuadParams, validate_params
+from ttd3_jax.sim.vehicles import VEHICLE_NAMES
 
 TRACK_MODES = ("train", "validation", "spiral_rt", "los_rt")
 ERR_REFS = ("current", "next")
@@ -202,9 +204,17 @@ class RandomizationConfig:
     # plant without errors (factors 1, no latency, bias, mean wind or observation noise) to their
     # full width (sim.randomization.curriculum_scale); 0: the full ranges from the first episode
     curriculum: float = 0.0
+    # () = the config's vehicle; two of sim.vehicles.VEHICLE_NAMES: each episode flies one between them, known
+    # to the policy (sim.vehicle_mix); quad then gives only rate_model, gravity, thrust_units. (a, a): a alone
+    vehicles: tuple[str, ...] = ()
 
     def __post_init__(self):
         f = lambda name: _where("randomization", name)  # noqa: E731
+        v = self.vehicles
+        if not (isinstance(v, tuple | list) and len(v) in (0, 2) and all(n in VEHICLE_NAMES for n in v)):
+            checks.fail(f("vehicles"), f"() or two names of {VEHICLE_NAMES} (a policy for both and every "
+                        "vehicle between them)", v)  # fmt: skip
+        object.__setattr__(self, "vehicles", tuple(v))
         checks.boolean(f("randomize_init"), self.randomize_init)
         checks.number(f("curriculum"), self.curriculum, 0, 1)
         for name in ("init_pos", "init_vel", "init_tilt_deg", "init_yaw_deg", "wind_mean"):
@@ -308,10 +318,11 @@ class EnvConfig:
         level, no early termination, no observation noise, optional wind, and one crash
         threshold for every controller (``e_max = EVAL_CRASH_M``), and the nominal plant (no
         domain randomisation: ``PLANT_NEUTRAL``, no curriculum).  It sets the fields in
-        ``EVAL_PROTOCOL_FIELDS`` (``episode_steps`` stays: 3000, the paper's)."""
+        ``EVAL_PROTOCOL_FIELDS`` (``episode_steps`` stays: 3000, the paper's), and with
+        ``randomization.vehicles`` flies the first of them (``vehicle_mix.pin_vehicle``: another)."""
         quiet = dict(randomize_init=False, terminate=False, e_max=EVAL_CRASH_M, obs_noise_pos=0.0,
                      obs_noise_vel=0.0, obs_noise_quat=0.0, curriculum=0.0, **PLANT_NEUTRAL)  # fmt: skip
-        return self.replace(track=track, los_seed=los_seed, wind_sigma=wind_sigma, **quiet)
+        return vm.pin_vehicle(self).replace(track=track, los_seed=los_seed, wind_sigma=wind_sigma, **quiet)
 
 
 def _replace(cfg: EnvConfig, **changes) -> EnvConfig:
@@ -381,8 +392,17 @@ def plant_is_nominal(r: RandomizationConfig) -> bool:
 
 
 def _validate_plant(c: EnvConfig) -> None:
-    """The checks of the randomised plant across groups: the flown vehicle must hover."""
-    r, q = c.randomization, c.vehicle.quad
+    """The checks of the randomised plant across groups: the flown vehicle must hover (each end of
+    ``vehicles``: thrust-to-weight is geometric between them), in the shared units with ``vehicles``."""
+    r, v = c.randomization, c.vehicle
+    if r.vehicles:
+        vm.check_units(c)
+    for q in [vm.flown_as(n, v.quad) for n in dict.fromkeys(r.vehicles)] or [v.quad]:
+        _validate_hover(c, q)
+
+
+def _validate_hover(c: EnvConfig, q: QuadParams) -> None:
+    r = c.randomization
     if tuple(r.tau_rate) != PLANT_NEUTRAL["tau_rate"] and q.rate_model == "torque":
         checks.fail("EnvConfig.randomization.tau_rate", "(1.0, 1.0) with rate_model 'torque' (which has no "
                     "time constant; randomise inertia)", r.tau_rate)  # fmt: skip

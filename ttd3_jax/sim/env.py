@@ -11,7 +11,8 @@ Observation at physics step k (raw units, O1), the parts of :func:`ttd3_jax.sim.
 
 with L = ``lookahead_k`` (1 in the paper) and k' = k (``err_ref="current"``) or k+1.
 ``obs_frame="track"`` moves the origin of the two absolute positions to p_d,k.
-``obs_memory`` and ``obs_privileged`` append the parts the layout names after these.
+``obs_memory``, ``randomization.vehicles`` (the known vehicle) and ``obs_privileged`` append the
+parts the layout names after these.
 Reward per physics step, with e' = ||p_d,k+1 - p_k+1|| after the step (R1-R3)::
 
     r = -rho1 * r_e(e') - rho2 * aᵀ Ω a,   r_e(e) = e if e² <= 1 else e²
@@ -37,9 +38,10 @@ with contextlib.redirect_stdout(io.StringIO()):
     from brax.envs.base import Env, State
 
 from ttd3_jax.sim import custom_tracks as ct
-from ttd3_jax.sim import observation, rng
+from ttd3_jax.sim import observation
 from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim import trajectories as tr
+from ttd3_jax.sim import vehicle_mix as vm
 from ttd3_jax.sim.action_map import action_to_control, hover_action
 from ttd3_jax.sim.config import PRIVILEGED_AHEAD_S, EnvConfig, make_config
 from ttd3_jax.sim.dynamics import (
@@ -50,6 +52,7 @@ from ttd3_jax.sim.dynamics import (
     quat_mul,
     rk4_step,
 )
+from ttd3_jax.sim.numerics import _finite, _zero_non_finite, ou_wind_step
 from ttd3_jax.sim.track_mixture import (
     mixture_num_segments,
     mixture_track,
@@ -202,8 +205,9 @@ class TrackingEnv(Env):
         fields = dict(quad=quad, k=jnp.zeros((), jnp.int32), track=track, wind=wind, key=k_next)
         fields["ref_next"] = jnp.zeros(3, f)
         if self._randomized:  # the plant, drawn around ``vehicle`` (a key folded off rng's other draws)
-            pending = jnp.broadcast_to(hover_action(c).astype(f), (rz.pending_size(c), 4))
             plant = rz.draw(c, rng, vehicle, f, rz.curriculum_scale(c, progress))
+            hover = hover_action(c, rz.nominal_vehicle(plant)).astype(f)  # the known vehicle's map
+            pending = jnp.broadcast_to(hover, (rz.pending_size(c), 4))
             ps = RandomizedTrackingState(**fields, plant=plant, pending=pending, last_action=jnp.zeros(4, f),
                                          err_int=jnp.zeros(3, f))  # fmt: skip
         elif c.disturbances.action_delay:
@@ -245,17 +249,18 @@ class TrackingEnv(Env):
         return self._finish(state, ps, a, carry, p_ref)
 
     def _step_randomized(self, state: State, a: jax.Array) -> State:
-        """:meth:`step` of the randomised plant: the nominal action map, then the plant's
-        thrust gain and box, the latency's choice of command per physics step, its wind."""
+        """:meth:`step` of the randomised plant: the nominal action map (the drawn nominal
+        vehicle's under ``vehicles``), then the plant's thrust gain and box, the latency's choice
+        of command per physics step, its wind."""
         c = self.config
         ps = state.pipeline_state
-        plant, m = ps.plant, rz.pending_size(c)
+        plant, m, known = ps.plant, rz.pending_size(c), rz.nominal_vehicle(ps.plant)
         if m:  # substep j applies the command given commanded_lags[j] control steps ago
             stack = jnp.concatenate([a[None], ps.pending])
-            u = action_to_control(c, stack[rz.commanded_lags(c, plant.latency)])  # (R, 4)
+            u = action_to_control(c, stack[rz.commanded_lags(c, plant.latency)], known)  # (R, 4)
             ps = ps.replace(pending=stack[:m])
         else:
-            u = jnp.broadcast_to(action_to_control(c, a), (c.action_repeat, 4))
+            u = jnp.broadcast_to(action_to_control(c, a, known), (c.action_repeat, 4))
         u = clip_control(plant.quad, u.at[:, 0].multiply(plant.thrust_gain))
         effort = self._effort(a)  # of the commanded action
         zero = jnp.zeros((), ps.quad.p.dtype)
@@ -351,15 +356,11 @@ class TrackingEnv(Env):
         )
         return QuadState(p=p, v=v, q=q, w=jnp.zeros(3, f))
 
-    def observe(self, ps: TrackingState, p_ref_now: jax.Array | None = None, integrate: bool = False):
-        """Observation (O1), and the state with its noise key advanced and ``ref_next``
-        refreshed.  ``p_ref_now`` may pass p_d(k) when the caller already has it.
-        ``integrate`` (after a step, with ``obs_memory``): first add this control step to the
-        leaky error integral, from the *observed* position (noise and bias included, as a
-        vehicle would integrate it), never the true one."""
+    def _measured(self, ps: TrackingState):
+        """``(p, v, q, ps)`` as measured: the observation noise (``ps``'s key advanced) and the
+        position bias of a randomised plant added."""
         c = self.config
-        x = ps.quad
-        p, v, q = x.p, x.v, x.q
+        p, v, q = ps.quad.p, ps.quad.v, ps.quad.q
         if (
             c.disturbances.obs_noise_pos > 0
             or c.disturbances.obs_noise_vel > 0
@@ -377,6 +378,17 @@ class TrackingEnv(Env):
             ps = ps.replace(key=key)
         if self._randomized and rz.has_pos_bias(c):
             p = p + ps.plant.pos_bias  # the observed position's bias (before the track-frame shift)
+        return p, v, q, ps
+
+    def observe(self, ps: TrackingState, p_ref_now: jax.Array | None = None, integrate: bool = False):
+        """Observation (O1), and the state with its noise key advanced and ``ref_next``
+        refreshed.  ``p_ref_now`` may pass p_d(k) when the caller already has it.
+        ``integrate`` (after a step, with ``obs_memory``): first add this control step to the
+        leaky error integral, from the *observed* position (noise and bias included, as a
+        vehicle would integrate it), never the true one."""
+        c = self.config
+        x = ps.quad
+        p, v, q, ps = self._measured(ps)
         if integrate and c.observation.obs_memory:
             leak = math.exp(-c.control_dt / c.observation.memory_tau)
             p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
@@ -401,6 +413,8 @@ class TrackingEnv(Env):
             parts["omega"] = x.w
         if c.observation.obs_memory:
             parts.update(last_action=ps.last_action, error_integral=ps.err_int)
+        if self.layout.has("vehicle"):  # the known vehicle (randomization.vehicles)
+            parts["vehicle"] = vm.descriptor(ps.plant.nominal)
         if c.observation.obs_privileged:
             wind_mean = self._randomized and c.randomization.wind_mean > 0
             parts["wind"] = ps.wind + ps.plant.wind_mean if wind_mean else ps.wind
@@ -409,42 +423,3 @@ class TrackingEnv(Env):
                 parts[f"p_ahead_{t:g}s"] = tr.position(ps.track, k, c.dt) - p_ahead
         # non-finite entries (a diverged state) read as 0, in one read of the concatenation
         return _zero_non_finite(self.layout.build(parts, jnp.concatenate)), ps
-
-
-def ou_wind_step(c: EnvConfig, wind: jax.Array, key: jax.Array):
-    """One physics step (``c.dt``) of the OU wind acceleration ``wind`` (3,) m/s², with
-    stationary std ``c.disturbances.wind_sigma`` and correlation time ``c.disturbances.wind_tau``; returns
-    ``(wind, key)`` (one split and 3 normals of ``ttd3_jax.sim.rng``)."""
-    key, sub = rng.split(key)
-    phi = math.exp(-c.dt / c.disturbances.wind_tau)
-    xi = rng.normal(sub, (3,), wind.dtype)
-    return phi * wind + c.disturbances.wind_sigma * math.sqrt(1.0 - phi * phi) * xi, key
-
-
-@jax.custom_jvp
-def _zero_non_finite(x: jax.Array) -> jax.Array:
-    """``x`` with its NaN and inf entries set to +0.0, as ``jnp.where(jnp.isfinite(x), x, 0)``
-    (values and derivative), but testing the exponent bits so that ``x`` is read once: XLA:CPU
-    then fuses the observation's concatenation into the mask instead of writing it out."""
-    return _mask_bits(x)
-
-
-def _mask_bits(x: jax.Array) -> jax.Array:
-    f = jnp.finfo(x.dtype)
-    ints = jnp.dtype(f"int{f.bits}")
-    exp = ((1 << f.nexp) - 1) << f.nmant  # all exponent bits set: inf or NaN
-    bits = jax.lax.bitcast_convert_type(x, ints)
-    mask = jnp.asarray(exp, ints)
-    return jax.lax.bitcast_convert_type(jnp.where(bits & mask == mask, 0, bits), x.dtype)
-
-
-@_zero_non_finite.defjvp
-def _zero_non_finite_jvp(primals, tangents):
-    (x,), (t,) = primals, tangents
-    return _mask_bits(x), jnp.where(jnp.isfinite(x), t, 0.0)
-
-
-def _finite(x: QuadState) -> jax.Array:
-    """True when every state entry is finite (a NaN or inf anywhere makes the sum non-finite);
-    added one by one, since a ``jnp.sum`` reduction would end the step's fusion on XLA:CPU."""
-    return jnp.isfinite(sum(leaf[..., i] for leaf in jax.tree.leaves(x) for i in range(leaf.shape[-1])))

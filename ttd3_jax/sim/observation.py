@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from ttd3_jax.sim import vehicle_mix as vm
 from ttd3_jax.sim.config import PRIVILEGED_AHEAD_S, EnvConfig
 
 XYZ = ("x", "y", "z")
@@ -118,6 +119,8 @@ def layout(cfg: EnvConfig) -> ObsLayout:
                           "the action the last step applied (zeros at reset)"))  # fmt: skip
         parts.append(Part("error_integral", _vec("error_integral"),
                           "leaky integral of p_d - p (m s), leak time constant memory_tau"))  # fmt: skip
+    if cfg.randomization.vehicles:  # the known vehicle of one policy for several (sim.vehicle_mix)
+        parts.append(Part("vehicle", tuple(f"vehicle.{e}" for e in vm.DESCRIPTOR), vm.DESCRIPTOR_MEANING))
     if cfg.observation.obs_privileged:
         parts.append(Part("wind", _vec("wind"), "the wind acceleration (m/s^2)", critic_only=True))
         for t in PRIVILEGED_AHEAD_S:

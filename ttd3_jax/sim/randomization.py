@@ -5,7 +5,9 @@ see: the thrust-map error, the actuation latency, the observation's noise level 
 bias, and a constant wind.  :func:`draw` draws one per episode from the ranges of
 :class:`~ttd3_jax.sim.config.RandomizationConfig` (the env's reset does it); :func:`nominal`
 is the plant of the neutral ranges.  The action map always stays that of the config's
-(nominal) vehicle, so that a mass or thrust error is not compensated by the map.
+(nominal) vehicle, so that a mass or thrust error is not compensated by the map.  With
+``randomization.vehicles`` the nominal vehicle is drawn too (``sim.vehicle_mix``), known: a
+:class:`VehiclePlant` carries it, for the action map and the observation's descriptor.
 
 Units: masses, inertias, thrust and rate limits as factors on the given vehicle; latency in
 physics steps of ``dt`` (drawn from seconds, so a 10 ms-control policy and a 1 ms NMPC get the
@@ -20,6 +22,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from ttd3_jax.sim import vehicle_mix as vm
 from ttd3_jax.sim.config import EnvConfig, plant_is_nominal
 from ttd3_jax.sim.dynamics import QuadParams
 
@@ -38,9 +41,24 @@ class Plant:
     wind_mean: jax.Array  # (3,) m/s², added to the OU wind acceleration
 
 
+@struct.dataclass
+class VehiclePlant(Plant):
+    """The plant of a config with ``randomization.vehicles`` (a subclass, so that the others keep
+    their layout): also the episode's nominal vehicle, known to the controller."""
+
+    nominal: QuadParams  # the drawn vehicle before the unknown errors (arrays, as ``quad``)
+
+
 def active(cfg: EnvConfig) -> bool:
-    """Static: whether any plant range of ``cfg`` differs from its neutral value."""
-    return not plant_is_nominal(cfg.randomization)
+    """Static: whether any plant range of ``cfg`` differs from its neutral value, or the
+    nominal vehicle is drawn (``vehicles``)."""
+    return not plant_is_nominal(cfg.randomization) or bool(cfg.randomization.vehicles)
+
+
+def nominal_vehicle(plant: Plant) -> QuadParams | None:
+    """The episode's known vehicle when it is drawn (:class:`VehiclePlant`), else ``None`` (the
+    config's: ``sim.action_map``'s default)."""
+    return plant.nominal if isinstance(plant, VehiclePlant) else None
 
 
 def fixed_pos_bias(cfg: EnvConfig) -> bool:
@@ -129,7 +147,15 @@ def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=N
     towards 0."""
     r = cfg.randomization
     dtype = dtype or jnp.zeros(()).dtype
-    quad = _as_arrays(cfg.vehicle.quad if quad is None else quad, flown_rate_model(cfg), dtype)
+    if r.vehicles:  # the nominal vehicle, drawn; the errors below apply around it
+        if quad is not None:
+            raise ValueError(
+                "randomization.draw: a config with randomization.vehicles draws its vehicle; quad None"
+            )
+        known = vm.draw_vehicle(r.vehicles, cfg.vehicle.quad, key, dtype)
+        quad = known.replace(rate_model=flown_rate_model(cfg))
+    else:
+        quad = _as_arrays(cfg.vehicle.quad if quad is None else quad, flown_rate_model(cfg), dtype)
     k = jax.random.split(jax.random.fold_in(key, PLANT_TAG), 10)
 
     def uni(i, rng, shape=(), neutral=1.0):
@@ -156,7 +182,9 @@ def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=N
         if fixed_pos_bias(cfg)
         else uni(8, (-r.pos_bias, r.pos_bias), (3,), 0.0)
     )
-    return Plant(
+    kind, known_part = (VehiclePlant, dict(nominal=known)) if r.vehicles else (Plant, {})
+    return kind(
+        **known_part,
         quad=quad,
         thrust_gain=uni(6, r.thrust_gain),
         latency=latency,

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 
-from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.dynamics import QuadParams
 
 _L2F = "rl-tools/rl-tools include/rl_tools/rl/environments/l2f/parameters/dynamics/crazyflie.h"
@@ -73,9 +72,10 @@ def thrust_to_weight(quad: QuadParams) -> float:
     return quad.thrust_max / quad.hover_thrust
 
 
-def with_vehicle(cfg: EnvConfig, name: str) -> EnvConfig:
-    """``cfg`` flying vehicle ``name``.  Refuses a ``cfg`` with ``thrust_map_mass`` set (a
-    mass pinned for another vehicle's action map)."""
+def with_vehicle(cfg, name: str):
+    """The ``EnvConfig`` ``cfg`` flying vehicle ``name`` (this module imports no config: the
+    config imports it).  Refuses a ``cfg`` with ``thrust_map_mass`` set (a mass pinned for
+    another vehicle's action map)."""
     quad = vehicle(name)
     if cfg.vehicle.thrust_map_mass is not None:
         raise ValueError(
