@@ -194,9 +194,9 @@ def test_the_migration_knows_only_the_fields_added_later():
     legacy["task"].pop("lookahead_k")
     with pytest.raises(ValueError, match='field "task.observation.lookahead_k" is missing'):
         sp.from_dict(legacy)  # no history: refused
-    with pytest.raises(ValueError, match="format 7 is not one this version reads"):
-        sp.from_dict({**d, "format": 7})
-    assert sp.CONFIG_FORMAT == 6
+    with pytest.raises(ValueError, match="format 8 is not one this version reads"):
+        sp.from_dict({**d, "format": 8})
+    assert sp.CONFIG_FORMAT == 7
 
 
 def test_every_committed_run_spec_loads():

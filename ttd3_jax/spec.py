@@ -23,7 +23,7 @@ from ttd3_jax.td3.trainer import Trainer, make_trainer
 QUADROTOR = "quadrotor"
 PRESETS = ("fast", "robust", "fast_dpg", "fast_model_free", "paper", "mujoco")
 SEED_LIMIT = 2**32  # seeds are uint32 PRNG keys: seed + num_seeds - 1 must stay below this
-CONFIG_FORMAT = 6  # config.json's "format"; files without one were written before it (format 0)
+CONFIG_FORMAT = 7  # config.json's "format"; files without one were written before it (format 0)
 GROUPED_TASK = 3  # the first format whose "task" holds EnvConfig's groups (before: flat, sim.config.grouped)
 # Fields added to the run spec after runs were first saved (2026-11-22): for each, the first
 # format whose files hold it, and the value that reproduces what a run saved before it did
@@ -44,7 +44,7 @@ ADDED_FIELDS = {
     ("task", "wide_mix"): (4, []),  # issue 37: the wide training mixture
     ("task", "observe_rates"): (5, False),  # issue 37: ω observed on an instant vehicle
     ("task", "curriculum"): (6, 0.0),  # issue 37: the randomisation's curriculum
-    ("task", "vehicles"): (6, []),  # issue 37: one policy for the vehicles between two (sim.vehicle_mix)
+    ("task", "vehicles"): (7, []),  # issue 37: one policy for the vehicles between two (sim.vehicle_mix)
 }
 
 
