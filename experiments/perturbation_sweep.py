@@ -79,7 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     add("--controllers", default=",".join(CONTROLLERS), help="policy, nmpc or both (default policy,nmpc)")
     for _, (flag, default, unit, _label) in PANELS.items():
         add(
-            flag, default=default, help=f"points, comma-separated, in {unit} (default {default}; '' skips it)"
+            flag,
+            default=default,
+            help=f"points, comma-separated, in {unit.replace('%', '%%')} (default {default}; '' skips it)",
         )
     return ap
 

@@ -361,6 +361,12 @@ def _sweep_module():
     return mod
 
 
+def test_perturbation_sweep_prints_its_help():
+    """--help formats every option (a bare % in a help string made argparse raise)."""
+    text = _sweep_module().build_parser().format_help()
+    assert "--mass MASS" in text and "in % (default" in text
+
+
 def test_perturbation_sweep_refuses_bad_arguments(tmp_path, capsys):
     sweep = _sweep_module()
     run_dir = fake_run_dir(tmp_path / "run")
