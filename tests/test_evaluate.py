@@ -44,13 +44,14 @@ from ttd3_jax.td3.networks import init_params, twin_q
 from ttd3_jax.td3.trainer import seed_keys
 
 
-def fake_run_dir(path) -> str:
-    """A run directory as the runner writes it (config.json with a change to the preset's
-    env config, an orbax checkpoint of the whole train state at epoch 2), without the ~40 s
-    of compiling a real run: the state is zeros except for freshly initialised actor and
-    critic weights (``init_params`` with key 3)."""
+def fake_run_dir(path, spec: sp.RunSpec | None = None, obs_var: float | None = None) -> str:
+    """A run directory as the runner writes it (config.json of ``spec``, default ``tiny`` with
+    a change to the preset's env config; an orbax checkpoint of the whole train state at epoch
+    2), without the ~40 s of compiling a real run: the state is zeros except for freshly
+    initialised actor and critic weights (``init_params`` with key 3) and, with ``obs_var``,
+    observation statistics of mean 0 and that variance."""
     base = tiny()
-    s = sp.replace(base, task=base.task.replace(obs_frame="world"))
+    s = spec or sp.replace(base, task=base.task.replace(obs_frame="world"))
     trainer = sp.trainer_for(s)
     like = jax.eval_shape(
         per_seed(trainer.init, s.num_seeds, (0, None)), seed_keys(s.seed, s.num_seeds), s.hp
@@ -59,6 +60,10 @@ def fake_run_dir(path) -> str:
     actor, critic = init_params(trainer.nets, jax.random.PRNGKey(3), trainer.env.obs_size, 4)
     lead = lambda tree: jax.tree.map(lambda x: x[None], tree)  # noqa: E731  (the seed axis)
     state = state.replace(actor=lead(actor), critic=lead(critic))
+    if obs_var is not None:
+        n = trainer.env.obs_size
+        stats = networks.ObsStats(count=jnp.ones((1,)), mean=jnp.zeros((1, n)), m2=jnp.full((1, n), obs_var))
+        state = state.replace(obs_stats=stats)
     os.makedirs(path)
     with open(os.path.join(path, "config.json"), "w") as fh:
         json.dump(sp.to_dict(s), fh)

@@ -15,24 +15,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_evaluate import fake_run_dir
 from tiny import tiny
 
-from ttd3_jax import checkpoint as ckpt
 from ttd3_jax import policy_export as pe
 from ttd3_jax import runs
 from ttd3_jax import spec as sp
 from ttd3_jax.evaluate import main as evaluate_main
 from ttd3_jax.export import main as export_main
-from ttd3_jax.sharding import per_seed
 from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim import vehicle_mix as vm
 from ttd3_jax.sim.action_map import action_to_control
 from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.env import TrackingEnv
 from ttd3_jax.sim.vehicles import CRAZYFLIE, VEHICLES
-from ttd3_jax.td3 import networks
-from ttd3_jax.td3.networks import init_params
-from ttd3_jax.td3.trainer import act, seed_keys
+from ttd3_jax.td3.trainer import act
 
 BOTH = ("paper", "crazyflie")
 CF_RATE = math.radians(720.0)  # rad/s, 12.57
@@ -142,27 +139,13 @@ def test_a_format_6_config_loads_with_one_vehicle():
 
 @pytest.fixture(scope="module")
 def two_vehicle_run(tmp_path_factory):
-    """A run directory of a ``tiny`` spec with ``vehicles``: config.json and an epoch-2 checkpoint
-    of freshly initialised networks and unit observation statistics (no training to compile)."""
+    """A run directory of a ``tiny`` spec with ``vehicles`` (``fake_run_dir``: config.json and
+    an epoch-2 checkpoint of freshly initialised networks, unit-ish observation statistics)."""
     base = tiny()
     s = sp.replace(base, task=base.task.replace(vehicles=BOTH))
-    trainer = sp.trainer_for(s)
-    like = jax.eval_shape(
-        per_seed(trainer.init, s.num_seeds, (0, None)), seed_keys(s.seed, s.num_seeds), s.hp
-    )
-    state = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), like)
-    actor, critic = init_params(trainer.nets, jax.random.PRNGKey(3), trainer.env.obs_size, 4)
-    lead = lambda tree: jax.tree.map(lambda x: x[None], tree)  # noqa: E731  (the seed axis)
-    n = trainer.env.obs_size
-    stats = networks.ObsStats(count=jnp.ones((1,)), mean=jnp.zeros((1, n)), m2=jnp.full((1, n), 0.25))
-    state = state.replace(actor=lead(actor), critic=lead(critic), obs_stats=stats)
-    path = str(tmp_path_factory.mktemp("two") / "run")
-    os.makedirs(path)
-    with open(os.path.join(path, "config.json"), "w") as fh:
-        json.dump(sp.to_dict(s), fh)
+    path = fake_run_dir(tmp_path_factory.mktemp("two") / "run", s, obs_var=0.25)
     with open(os.path.join(path, "metrics.csv"), "w") as fh:
         fh.write("epoch,seed\n")  # no epoch evaluated
-    ckpt.save(ckpt.manager(path), 2, state)
     return path
 
 
