@@ -76,7 +76,7 @@ def test_env_wind_is_unchanged_by_the_fused_draws(monkeypatch):
     entries off by one ulp), which is why that noise stays on jax.random."""
     import types
 
-    import ttd3_jax.sim.env as env_module
+    import ttd3_jax.sim.numerics as wind_module  # the OU wind step (sim.numerics.ou_wind_step)
     from ttd3_jax.sim.config import make_config
     from ttd3_jax.sim.env import TrackingEnv
 
@@ -93,7 +93,7 @@ def test_env_wind_is_unchanged_by_the_fused_draws(monkeypatch):
 
     ours = rollout()
     jax_rng = types.SimpleNamespace(split=jax.random.split, normal=jax.random.normal)
-    monkeypatch.setattr(env_module, "rng", jax_rng)
+    monkeypatch.setattr(wind_module, "rng", jax_rng)
     theirs = rollout()
     assert float(jnp.abs(ours[2]).max()) > 0  # the wind is on
     for a, b in zip(ours, theirs, strict=True):
