@@ -72,10 +72,15 @@ def has_pos_bias(cfg: EnvConfig) -> bool:
     return any(x != 0 for x in b) if fixed_pos_bias(cfg) else b > 0
 
 
+def delay_steps(cfg: EnvConfig) -> int:
+    """``action_delay`` in physics steps (the randomised env counts it as latency)."""
+    return cfg.disturbances.action_delay * cfg.action_repeat
+
+
 def latency_steps(cfg: EnvConfig) -> tuple[int, int]:
     """The latency range in physics steps: round(seconds / dt), plus ``action_delay`` control
     steps (which the randomised env counts as latency)."""
-    extra = cfg.disturbances.action_delay * cfg.action_repeat
+    extra = delay_steps(cfg)
     lo, hi = cfg.randomization.latency
     return round(lo / cfg.dt) + extra, round(hi / cfg.dt) + extra
 
@@ -117,7 +122,7 @@ def nominal(cfg: EnvConfig, quad: QuadParams | None = None, dtype=None) -> Plant
     dtype = dtype or jnp.zeros(()).dtype
     quad = cfg.vehicle.quad if quad is None else quad
     zero3 = jnp.zeros(3, dtype)
-    extra = cfg.disturbances.action_delay * cfg.action_repeat
+    extra = delay_steps(cfg)
     return Plant(quad=_as_arrays(quad, flown_rate_model(cfg), dtype), thrust_gain=jnp.ones((), dtype),
                  latency=jnp.asarray(extra, jnp.int32), noise_scale=jnp.ones((), dtype), pos_bias=zero3,
                  wind_mean=zero3)  # fmt: skip
@@ -174,14 +179,13 @@ def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=N
     )
     lo, hi = latency_steps(cfg)
     if scale is not None:  # towards the action_delay steps alone
-        extra = cfg.disturbances.action_delay * cfg.action_repeat
+        extra = delay_steps(cfg)
         lo, hi = (extra + jnp.round(scale * (x - extra)).astype(jnp.int32) for x in (lo, hi))
     latency = jax.random.randint(k[5], (), lo, hi + 1, jnp.int32)
-    bias = (
-        jnp.asarray(r.pos_bias, dtype)
-        if fixed_pos_bias(cfg)
-        else uni(8, (-r.pos_bias, r.pos_bias), (3,), 0.0)
-    )
+    if fixed_pos_bias(cfg):
+        bias = jnp.asarray(r.pos_bias, dtype) if scale is None else scale * jnp.asarray(r.pos_bias, dtype)
+    else:
+        bias = uni(8, (-r.pos_bias, r.pos_bias), (3,), 0.0)
     kind, known_part = (VehiclePlant, dict(nominal=known)) if r.vehicles else (Plant, {})
     return kind(
         **known_part,
@@ -189,7 +193,7 @@ def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=N
         thrust_gain=uni(6, r.thrust_gain),
         latency=latency,
         noise_scale=uni(7, r.obs_noise, neutral=0.0),
-        pos_bias=bias if scale is None or not fixed_pos_bias(cfg) else scale * bias,
+        pos_bias=bias,
         wind_mean=uni(9, (-r.wind_mean, r.wind_mean), (3,), 0.0),
     )
 
