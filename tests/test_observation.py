@@ -3,13 +3,17 @@ covers it exactly once, and names the parts only the critics see."""
 
 import dataclasses
 import itertools
+import json
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from tiny import tiny
 
+from ttd3_jax import spec as sp
 from ttd3_jax.sim import observation
+from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.dynamics import QuadParams
 from ttd3_jax.sim.env import TrackingEnv
@@ -102,3 +106,44 @@ def test_observe_rates_shows_the_flown_body_rates_on_an_instant_vehicle():
             np.testing.assert_allclose(w, w_cmd * (1 - np.exp(-0.01 / 0.06)), rtol=1e-3)
         else:
             np.testing.assert_allclose(w, w_cmd, rtol=1e-6)
+
+
+def test_the_preview_shows_the_actor_the_reference_ahead_exactly():
+    """observation.preview_s: for each time t, p_d(k + L + t/dt) − p_d(k + L), read by the actor
+    (before the critics-only parts), on a known circle and after some steps."""
+    cfg = make_config("practical", preview_s=(0.1, 0.5), obs_privileged=True, track="spiral_rt")
+    env = TrackingEnv(cfg)
+    lay = env.layout
+    assert [p.name for p in lay.parts if p.name.startswith("preview")] == ["preview_0.1s", "preview_0.5s"]
+    assert lay.slice("preview_0.5s").stop == lay.actor_size == lay.slice("wind").start
+    s = env.reset(jax.random.PRNGKey(0))
+    for _ in range(7):
+        s = env.step(s, jnp.zeros(4))
+    ps, look = s.pipeline_state, cfg.observation.lookahead_k
+    ahead = tr.position(ps.track, ps.k + look, cfg.dt)
+    for t in (0.1, 0.5):
+        want = tr.position(ps.track, ps.k + look + round(t / cfg.dt), cfg.dt) - ahead
+        np.testing.assert_allclose(s.obs[lay.slice(f"preview_{t:g}s")], want, rtol=0, atol=1e-6)
+        assert float(jnp.linalg.norm(want)) > 0.01  # the spiral moves: the preview is not a constant
+    assert cfg.horizon_steps == cfg.episode_steps + look + 2 + round(1.0 / cfg.dt)  # privileged reaches 1 s
+
+
+@pytest.mark.parametrize("bad", [(0.0,), (-0.1,), (0.5, 0.1), (0.2, 0.2), (2.5,), (float("nan"),)])
+def test_a_bad_preview_is_refused_naming_the_field(bad):
+    with pytest.raises(ValueError, match=r"observation\.preview_s must be increasing times in \(0, 2\] s"):
+        make_config("practical", preview_s=bad)
+
+
+def test_a_preview_lengthens_the_track_to_its_farthest_point():
+    base = make_config("practical")
+    assert make_config("practical", preview_s=(0.25, 1.5)).horizon_steps == base.horizon_steps + 1500
+
+
+def test_a_format_7_config_loads_without_a_preview():
+    """Format 8 brought observation.preview_s: a format-7 file (without it) loads with none."""
+    d = json.loads(json.dumps(sp.to_dict(tiny())))
+    assert d["task"]["observation"]["preview_s"] == []
+    del d["task"]["observation"]["preview_s"]
+    assert sp.from_dict({**d, "format": 7}) == tiny()
+    with pytest.raises(ValueError, match='"task.observation.preview_s" is missing'):
+        sp.from_dict(d)

@@ -25,6 +25,11 @@ def test_the_robust_preset_randomises_the_plant_and_the_tracks():
     spec = sp.preset("robust")
     assert rz.active(spec.task) and spec.task.tracks.wide_mix and spec.num_seeds == 3
     assert spec.train.model_horizon > 0  # the model-based actor, as fast
+    assert spec.task.observation.preview_s and spec.task.observation.obs_memory  # what it observes
+    assert (
+        TrackingEnv(spec.task).actor_observation_size
+        == TrackingEnv(sp.preset("fast").task).observation_size + 19
+    )
     # two resets fly two different vehicles, each within the preset's mass range
     env = TrackingEnv(spec.task)
     masses = [float(env.reset(jax.random.PRNGKey(k)).pipeline_state.plant.quad.mass) for k in range(2)]

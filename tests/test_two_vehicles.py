@@ -130,7 +130,7 @@ def test_a_format_6_config_loads_with_one_vehicle():
     """Format 6 brought the curriculum, format 7 the vehicles: a format-6 file (written with a
     curriculum field and no vehicles) loads with the config's vehicle."""
     d = json.loads(json.dumps(sp.to_dict(tiny())))
-    assert d["format"] == 7 and d["task"]["randomization"]["vehicles"] == []
+    assert d["format"] == sp.CONFIG_FORMAT and d["task"]["randomization"]["vehicles"] == []
     del d["task"]["randomization"]["vehicles"]
     assert sp.from_dict({**d, "format": 6}) == tiny()
     with pytest.raises(ValueError, match='"task.randomization.vehicles" is missing'):

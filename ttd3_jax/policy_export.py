@@ -257,6 +257,13 @@ def observation_spec(cfg: EnvConfig, obs_size: int) -> dict:
         else "q as integrated (either sign)",  # fmt: skip
         noise="none in the evaluation protocol",
         memory=memory_spec(cfg) if cfg.observation.obs_memory else None,
+        preview=(
+            f"for each t in preview_s (s): p_d at physics step k + {look} + round(t / physics_dt_s) "
+            f"minus p_d,k+{look} (m), the reference t s after p_ahead relative to it"
+        )
+        if cfg.observation.preview_s
+        else None,  # fmt: skip
+        preview_s=list(cfg.observation.preview_s),
     )
 
 

@@ -23,7 +23,7 @@ from ttd3_jax.td3.trainer import Trainer, make_trainer
 QUADROTOR = "quadrotor"
 PRESETS = ("fast", "robust", "fast_dpg", "fast_model_free", "paper", "mujoco")
 SEED_LIMIT = 2**32  # seeds are uint32 PRNG keys: seed + num_seeds - 1 must stay below this
-CONFIG_FORMAT = 7  # config.json's "format"; files without one were written before it (format 0)
+CONFIG_FORMAT = 8  # config.json's "format"; files without one were written before it (format 0)
 GROUPED_TASK = 3  # the first format whose "task" holds EnvConfig's groups (before: flat, sim.config.grouped)
 # Fields added to the run spec after runs were first saved (2026-11-22): for each, the first
 # format whose files hold it, and the value that reproduces what a run saved before it did
@@ -45,13 +45,14 @@ ADDED_FIELDS = {
     ("task", "observe_rates"): (5, False),  # issue 37: ω observed on an instant vehicle
     ("task", "curriculum"): (6, 0.0),  # issue 37: the randomisation's curriculum
     ("task", "vehicles"): (7, []),  # issue 37: one policy for the vehicles between two (sim.vehicle_mix)
+    ("task", "preview_s"): (8, []),
 }
 
 
 # The ``robust`` preset's task on top of ``fast``'s (EnvConfig fields by name): what each
 # training episode draws about the plant (sim.randomization; factors on the nominal vehicle,
-# latency in s), the disturbances it flies in, the observation's memory, and the wide track
-# mixture.  Each range is half as wide as the robustness rows (control.robustness) reach: mass
+# latency in s), the disturbances it flies in, the observation's memory and preview of the
+# reference, and the wide track mixture.  Each range is half as wide as the robustness rows (control.robustness) reach: mass
 # ±15 %, thrust gain ±2 %, rate lag x/÷ √2, latency 0-10 ms, noise x0-0.75, bias ±1 cm, mean wind
 # ±0.15 m/s², OU wind 0.25 m/s².  The full widths (mass ±30 %, latency 0-20 ms, ...) met fewer rows
 # on every seed and cost more precision (docs/results.md, "A robust controller").
@@ -59,7 +60,7 @@ ROBUST_TASK = dict(
     mass=(0.85, 1.15), thrust_gain=(0.98, 1.02), tau_rate=(0.707, 1.414), latency=(0.0, 0.01),
     obs_noise=(0.0, 0.75), pos_bias=0.01, wind_mean=0.15,
     wind_sigma=0.25, obs_noise_pos=0.01, obs_noise_vel=0.05, obs_noise_quat=0.005,
-    obs_memory=True, wide_mix=WIDE_MIX,
+    obs_memory=True, preview_s=(0.1, 0.25, 0.5, 1.0), wide_mix=WIDE_MIX,
 )  # fmt: skip
 
 
@@ -161,8 +162,9 @@ def preset(name: str, **changes) -> RunSpec:
     tells exactly (:data:`ROBUST_TASK`): each episode draws the mass, thrust gain, body-rate
     lag, latency, observation noise level and position bias, and a mean wind, and flies a
     track of the wide mixture (``sim.track_families``); the policy also observes its last
-    action and the leaky integral of the tracking error.  Three seeds side by side; each
-    seed's policy is selected on the wide validation tracks.
+    action, the leaky integral of the tracking error and the reference 0.1, 0.25, 0.5 and 1 s
+    ahead.  Three seeds side by side; each seed's policy is selected on the wide validation
+    tracks.
     ``mujoco``: the MuJoCo protocol (spec §2.7) on hopper: 1 env, 1 update per step,
     τ = 0.005, c = 0.5, 1e6 steps, L_nom = 1000.
     """

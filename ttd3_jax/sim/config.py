@@ -22,6 +22,7 @@ ERR_COSTS = ("paper", "squared", "log")
 OBS_FRAMES = ("world", "track")
 PRESETS = ("paper", "practical")
 PRIVILEGED_AHEAD_S = (0.5, 1.0)  # s after p_d,k+L of the critics' extra reference points (obs_privileged)
+PREVIEW_MAX_S = 2.0  # s: the farthest reference point observation.preview_s may show the actor
 CRASH_GAMMA = 0.99  # the discount the derived crash penalty is sized for (spec R4)
 # the fields EnvConfig.for_eval sets, and the episode length it keeps (keep them together)
 EVAL_PROTOCOL_FIELDS = ("track", "los_seed", "randomize_init", "terminate", "wind_sigma", "e_max",
@@ -82,9 +83,15 @@ class ObservationConfig:
     # observe the body rates ω (a gyro) on an ``instant`` vehicle too, where they are the last
     # command unless a randomised plant lags them (``first_order`` and ``torque`` always do)
     observe_rates: bool = False
+    # the actor's preview of the reference: p_d these times (s) after p_d,k+L, relative to it (m)
+    preview_s: tuple[float, ...] = ()
 
     def __post_init__(self):
         f = lambda name: _where("observation", name)  # noqa: E731
+        t = self.preview_s
+        ok = isinstance(t, tuple) and all(checks.is_number(x) and 0 < x <= PREVIEW_MAX_S for x in t)
+        if not (ok and list(t) == sorted(set(t))):
+            checks.fail(f("preview_s"), f"increasing times in (0, {PREVIEW_MAX_S:g}] s", t)
         checks.number(f("memory_tau"), self.memory_tau, 0, lo_open=True)
         checks.integer(f("lookahead_k"), self.lookahead_k, 1)
         checks.one_of(f("err_ref"), self.err_ref, ERR_REFS)
@@ -286,8 +293,8 @@ class EnvConfig:
     def horizon_steps(self) -> int:
         """Physics steps at which a reference point may be read."""
         o = self.observation
-        extra = round(max(PRIVILEGED_AHEAD_S) / self.dt) if o.obs_privileged else 0
-        return self.episode_steps + o.lookahead_k + 2 + extra
+        ahead = (PRIVILEGED_AHEAD_S if o.obs_privileged else ()) + o.preview_s
+        return self.episode_steps + o.lookahead_k + 2 + round(max(ahead, default=0) / self.dt)
 
     @property
     def crash_cost(self) -> float:

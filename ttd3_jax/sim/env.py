@@ -415,6 +415,9 @@ class TrackingEnv(Env):
             parts.update(last_action=ps.last_action, error_integral=ps.err_int)
         if self.layout.has("vehicle"):  # the known vehicle (randomization.vehicles)
             parts["vehicle"] = vm.descriptor(ps.plant.nominal)
+        for t in c.observation.preview_s:  # the actor's preview of the reference
+            k = ps.k + c.observation.lookahead_k + round(t / c.dt)
+            parts[observation.preview_name(t)] = tr.position(ps.track, k, c.dt) - p_ahead
         if c.observation.obs_privileged:
             wind_mean = self._randomized and c.randomization.wind_mean > 0
             parts["wind"] = ps.wind + ps.plant.wind_mean if wind_mean else ps.wind

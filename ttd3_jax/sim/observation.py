@@ -92,6 +92,11 @@ class ObsLayout:
                      critic_only=p.critic_only) for p in self.parts]  # fmt: skip
 
 
+def preview_name(t: float) -> str:
+    """The part of the actor's preview point ``t`` s after p_d,k+L (``observation.preview_s``)."""
+    return f"preview_{t:g}s"
+
+
 def _vec(prefix: str) -> tuple[str, ...]:
     return tuple(f"{prefix}.{a}" for a in XYZ)
 
@@ -121,6 +126,9 @@ def layout(cfg: EnvConfig) -> ObsLayout:
                           "leaky integral of p_d - p (m s), leak time constant memory_tau"))  # fmt: skip
     if cfg.randomization.vehicles:  # the known vehicle of one policy for several (sim.vehicle_mix)
         parts.append(Part("vehicle", tuple(f"vehicle.{e}" for e in vm.DESCRIPTOR), vm.DESCRIPTOR_MEANING))
+    for t in cfg.observation.preview_s:
+        meaning = f"the reference {t:g} s after p_d,k+L, relative to it (m)"
+        parts.append(Part(preview_name(t), _vec(f"p_d(+{t:g} s) - p_ahead"), meaning))
     if cfg.observation.obs_privileged:
         parts.append(Part("wind", _vec("wind"), "the wind acceleration (m/s^2)", critic_only=True))
         for t in PRIVILEGED_AHEAD_S:
