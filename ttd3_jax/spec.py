@@ -52,10 +52,11 @@ ADDED_FIELDS = {
 # The ``robust`` preset's task on top of ``fast``'s (EnvConfig fields by name): what each
 # training episode draws about the plant (sim.randomization; factors on the nominal vehicle,
 # latency in s), the disturbances it flies in, the observation's memory and preview of the
-# reference, and the wide track mixture.  Each range is half as wide as the robustness rows (control.robustness) reach: mass
-# ±15 %, thrust gain ±2 %, rate lag x/÷ √2, latency 0-10 ms, noise x0-0.75, bias ±1 cm, mean wind
-# ±0.15 m/s², OU wind 0.25 m/s².  The full widths (mass ±30 %, latency 0-20 ms, ...) met fewer rows
-# on every seed and cost more precision (docs/results.md, "A robust controller").
+# reference, and the wide track mixture.  Each range is half as wide as the robustness rows
+# (control.robustness) reach: mass ±15 %, thrust gain ±2 %, rate lag x/÷ √2, latency 0-10 ms,
+# noise x0-0.75, bias ±1 cm, mean wind ±0.15 m/s², OU wind 0.25 m/s².  The full widths (mass
+# ±30 %, latency 0-20 ms, ...) met fewer rows on every seed and cost more precision
+# (docs/results.md, "A robust controller").
 ROBUST_TASK = dict(
     mass=(0.85, 1.15), thrust_gain=(0.98, 1.02), tau_rate=(0.707, 1.414), latency=(0.0, 0.01),
     obs_noise=(0.0, 0.75), pos_bias=0.01, wind_mean=0.15,
