@@ -171,6 +171,18 @@ def test_cli_refuses_the_episode_length_as_a_protocol_field(capsys):
     assert "Traceback" not in err
 
 
+def test_cli_refuses_two_vehicles_for_a_classical_controller(capsys):
+    """A classical controller flies one vehicle: --task.randomization.vehicles is refused (it
+    used to fly the first one silently), naming --vehicle instead."""
+    with pytest.raises(SystemExit) as exc:
+        main(["--controller", "geometric", "--preset", "practical", "--task.vehicle.hover-centered-thrust",
+              "--task.randomization.vehicles", "paper", "crazyflie"])  # fmt: skip
+    assert exc.value.code == 2
+    err = flat(capsys.readouterr().err)
+    assert "--task.randomization.vehicles paper crazyflie: a classical controller flies one vehicle" in err
+    assert "allowed: --vehicle NAME" in err and "Traceback" not in err
+
+
 def test_probe_critics_reads_a_run_and_matches_a_direct_critic_call(tmp_path, capsys):
     path = os.path.join(os.path.dirname(__file__), "..", "experiments", "probe_critics.py")
     spec = importlib.util.spec_from_file_location("probe_critics", path)

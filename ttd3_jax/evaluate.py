@@ -183,6 +183,9 @@ def classical_env(preset: str, task_args: list[str], vehicle: str | None = None)
     default = default if vehicle is None else with_vehicle(default, vehicle)
     refuse_bool_values(task_args, bool_flags(_Task))
     cfg = tyro.cli(_Task, default=_Task(default), args=task_args, prog="python -m ttd3_jax.evaluate").task
+    if cfg.randomization.vehicles:
+        raise ValueError(f"--task.randomization.vehicles {' '.join(cfg.randomization.vehicles)}: a classical "
+                         "controller flies one vehicle; allowed: --vehicle NAME")  # fmt: skip
     protocol = [f for f in EVAL_PROTOCOL_FIELDS if cfg.get(f) != default.get(f)]
     if protocol:
         flag = "--task." + EnvConfig.path(protocol[0]).replace("_", "-")
