@@ -28,9 +28,12 @@ DESCRIPTIONS = {
     "circle": "circle of radius 1 m at 1.5 m/s",
     "step": "0.5 m position step along x from hover (v = a = 0)",
     "spiral_fast": "Spiral-RT at 1.5× its speed (time scale 1.5)",
-    "agile_1": "random accelerations, |a| ≤ 6 m/s² per horizontal axis (training 3), held 0.3 s, ≤ 4.5 m/s",
+    "agile_1": (
+        "random accelerations, |a| ≤ 6 m/s² per horizontal axis (paper mixture ≤ 3, wide ≤ 6), "
+        "held 0.3 s, ≤ 4.5 m/s"
+    ),
     "agile_2": "as agile_1, another seed",
-    "los_fast": "LOS legs of 0.5 s at 3.5–4.5 m/s (training ≤ 3), headings ±20°",
+    "los_fast": "LOS legs of 0.5 s at 3.5–4.5 m/s (paper mixture ≤ 3, wide ≤ 4.5), headings ±20°",
 }
 
 
