@@ -415,14 +415,16 @@ class TrackingEnv(Env):
             parts.update(last_action=ps.last_action, error_integral=ps.err_int)
         if self.layout.has("vehicle"):  # the known vehicle (randomization.vehicles)
             parts["vehicle"] = vm.descriptor(ps.plant.nominal)
+
+        def ahead(t):  # p_d t s after p_d,k+L, relative to it (the preview, the critics' points)
+            return tr.position(ps.track, ps.k + c.observation.lookahead_k + round(t / c.dt), c.dt) - p_ahead
+
         for t in c.observation.preview_s:  # the actor's preview of the reference
-            k = ps.k + c.observation.lookahead_k + round(t / c.dt)
-            parts[observation.preview_name(t)] = tr.position(ps.track, k, c.dt) - p_ahead
+            parts[observation.preview_name(t)] = ahead(t)
         if c.observation.obs_privileged:
             wind_mean = self._randomized and c.randomization.wind_mean > 0
             parts["wind"] = ps.wind + ps.plant.wind_mean if wind_mean else ps.wind
             for t in PRIVILEGED_AHEAD_S:
-                k = ps.k + c.observation.lookahead_k + round(t / c.dt)
-                parts[f"p_ahead_{t:g}s"] = tr.position(ps.track, k, c.dt) - p_ahead
+                parts[f"p_ahead_{t:g}s"] = ahead(t)
         # non-finite entries (a diverged state) read as 0, in one read of the concatenation
         return _zero_non_finite(self.layout.build(parts, jnp.concatenate)), ps
