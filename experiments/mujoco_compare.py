@@ -444,9 +444,15 @@ def write_readme(a: argparse.Namespace, summary: list[dict], wall_s: float, rows
         note = f" ({a.device_note})" if a.device_note else ""
         fh.write(f"- device: {jax_device()}{note}\n")
         fh.write("- commands (each trains the tasks it names; finished tasks are skipped):\n")
+        notes = [line for line in commands if line.lstrip().startswith("#")]
         for line in commands:
-            date, _, cmd = line.partition("  ")
-            fh.write(f"  - {date}: `{cmd.strip()}`\n")
+            if line.strip() and line not in notes:
+                date, _, cmd = line.partition("  ")
+                fh.write(f"  - {date}: `{cmd.strip()}`\n")
+        if notes:
+            lines = f"{len(notes)} line" + ("s" if len(notes) != 1 else "")
+            fh.write(f"- [commands.txt](commands.txt) also holds {lines} of notes (`#`): where the runs "
+                     "ran and how they were resumed\n")  # fmt: skip
         if not a.report_only:
             fh.write(f"- wall time of the last invocation: {wall_s:.0f} s\n")
         fh.write("\n")

@@ -137,12 +137,17 @@ def test_readme_states_each_runs_budget_and_flags_reduced_runs(tmp_path):
     assert not any(r["protocol"] for r in b.values())
     a.report_only = False
     a.device_note = "test machine"
+    with open(os.path.join(out, "commands.txt"), "w") as fh:  # a note a person added, and a blank line
+        fh.write("2026-12-01  python experiments/mujoco_compare.py --tasks hopper\n# resumed at 06:25\n\n")
     summary = mc.report(a, wall_s=1.0)
     assert {s["task"] for s in summary} == {"hopper", "ant"}
     text = open(os.path.join(out, "README.md")).read()
     assert "**Reduced runs, not the paper's protocol.**" in text
     assert "| hopper | TD3 | 40000 | 3 | 1 x 1 | 5000 | 2500 (10) | mjx | yes | **no: reduced** |" in text
     assert "| ant | T-TD3 | 15000 |" in text and "- device: cpu (test machine)" in text
+    assert "  - 2026-12-01: `python experiments/mujoco_compare.py --tasks hopper`" in text
+    assert "resumed at" not in text and "- : ``" not in text  # notes are pointed to, not listed
+    assert "[commands.txt](commands.txt) also holds 1 line of notes" in text
     assert os.path.getsize(os.path.join(out, "curves.png")) > 10_000
     with open(os.path.join(out, "evals.csv")) as fh:
         assert len(list(csv.DictReader(fh))) == 2 * 3 * (14 + 2)  # algos x seeds x evaluations
