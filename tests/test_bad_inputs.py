@@ -157,7 +157,7 @@ def flat_task(task: dict) -> dict:
 def test_a_format_2_file_with_the_flat_task_loads_grouped():
     d = json.loads(json.dumps(sp.to_dict(tiny())))
     two = {**d, "format": 2, "task": flat_task(d["task"])}
-    assert len(two["task"]) == 55 and sp.from_dict(two) == tiny()
+    assert len(two["task"]) == 58 and sp.from_dict(two) == tiny()
     two["task"]["wind_sigma"], two["task"]["tracks"]["los_climb_rate"] = 0.3, 0.2
     task = sp.from_dict(two).task
     assert task.disturbances.wind_sigma == 0.3 and task.tracks.generator.los_climb_rate == 0.2
@@ -194,9 +194,9 @@ def test_the_migration_knows_only_the_fields_added_later():
     legacy["task"].pop("lookahead_k")
     with pytest.raises(ValueError, match='field "task.observation.lookahead_k" is missing'):
         sp.from_dict(legacy)  # no history: refused
-    with pytest.raises(ValueError, match="format 9 is not one this version reads"):
-        sp.from_dict({**d, "format": 9})
-    assert sp.CONFIG_FORMAT == 8
+    with pytest.raises(ValueError, match="format 10 is not one this version reads"):
+        sp.from_dict({**d, "format": 10})
+    assert sp.CONFIG_FORMAT == 9
 
 
 def test_every_committed_run_spec_loads():

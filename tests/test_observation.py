@@ -147,3 +147,83 @@ def test_a_format_7_config_loads_without_a_preview():
     assert sp.from_dict({**d, "format": 7}) == tiny()
     with pytest.raises(ValueError, match='"task.observation.preview_s" is missing'):
         sp.from_dict(d)
+
+
+def test_the_reference_integral_shifts_the_observed_reference_as_policy_json_says():
+    """observation.ref_integral_gain: ref_int += dt (p_d,k − p) per axis within ±band after each step, and
+    the parts between the vehicle and the reference read p − s, s = clip(gain ref_int, ±limit);
+    the rest of the observation is the one without the integral."""
+    from ttd3_jax.policy_export import memory_spec
+
+    base = make_config("practical", obs_memory=True, track="spiral_rt", randomize_init=False)
+    cfg = base.replace(ref_integral_gain=40.0, ref_integral_band=0.003, ref_integral_limit=0.001)
+    env, plain, lay = TrackingEnv(cfg), TrackingEnv(base), observation.layout(cfg)
+    ri = memory_spec(cfg)["reference_integral"]
+    assert (ri["gain_per_s"], ri["band_m"], ri["limit_m"]) == (40.0, 0.003, 0.001)
+    s = env.reset(jax.random.PRNGKey(0))
+    s0 = plain.reset(jax.random.PRNGKey(0))
+    np.testing.assert_array_equal(s.obs, s0.obs)  # ref_int = 0 at reset
+    a = jnp.array([0.3, 0.2, -0.1, 0.0])  # drifts off the spiral: errors leave the band
+    ref_int, outside, limited = np.zeros(3), False, False
+    for _ in range(12):
+        s, s0 = env.step(s, a), plain.step(s0, a)  # the same flight: the shift changes no dynamics
+        ps = s.pipeline_state
+        e = np.asarray(tr.position(ps.track, ps.k, cfg.dt) - ps.quad.p)
+        outside |= bool(np.any(np.abs(e) >= 0.003))
+        ref_int = ref_int + memory_spec(cfg)["dt_s"] * np.where(np.abs(e) < 0.003, e, 0.0)
+        np.testing.assert_allclose(np.asarray(ps.ref_int), ref_int, rtol=1e-5, atol=1e-9)
+        shift = np.clip(40.0 * ref_int, -0.001, 0.001)
+        limited |= bool(np.any(np.abs(40.0 * ref_int) > 0.001))
+        o, o0 = np.asarray(s.obs), np.asarray(s0.obs)
+        np.testing.assert_allclose(o[lay.slice("p")], o0[lay.slice("p")] - shift, atol=1e-6)
+        np.testing.assert_allclose(
+            o[lay.slice("p_ahead_error")], o0[lay.slice("p_ahead_error")] + shift, atol=1e-6
+        )
+        np.testing.assert_allclose(o[lay.slice("error")], np.linalg.norm(e + shift), atol=1e-6)
+        for name in ("v", "q", "p_ahead", "last_action", "error_integral"):
+            np.testing.assert_array_equal(o[lay.slice(name)], o0[lay.slice(name)])
+    assert outside and limited  # the band and the limit were both exercised
+
+
+def test_a_classical_controller_senses_the_true_position_under_the_reference_integral():
+    """sensed_controller rebuilds p from the observation: the policy's shift is taken back out."""
+    from ttd3_jax.control.closed_loop import Controller, sensed_controller
+
+    cfg = make_config("practical", obs_memory=True, ref_integral_gain=50.0, randomize_init=False)
+    env = TrackingEnv(cfg.for_eval("spiral_rt"))  # no noise: sensed = true
+    probe = Controller(init=lambda s: (), act=lambda c, s: (jnp.zeros(4), s.pipeline_state.quad.p))
+    sensed = sensed_controller(probe, env.config)
+    s = env.reset(jax.random.PRNGKey(0))
+    for _ in range(10):
+        s = env.step(s, jnp.array([0.3, 0.2, 0.0, 0.0]))
+    assert float(jnp.max(jnp.abs(s.pipeline_state.ref_int))) > 0  # a shift is in the observation
+    np.testing.assert_allclose(sensed.act((), s)[1], s.pipeline_state.quad.p, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "field, bad, allowed",
+    [
+        ("ref_integral_gain", -1.0, r"a finite number in \[0, 100\] 1/s"),
+        ("ref_integral_gain", float("nan"), r"a finite number in \[0, 100\] 1/s"),
+        ("ref_integral_band", 0.0, r"a finite number in \(0, 1\] m"),
+        ("ref_integral_limit", 2.0, r"a finite number in \(0, 1\] m"),
+    ],
+)
+def test_a_bad_reference_integral_is_refused_naming_the_field(field, bad, allowed):
+    with pytest.raises(ValueError, match=rf"EnvConfig\.observation\.{field} must be {allowed}"):
+        make_config("practical", obs_memory=True, **{field: bad})
+
+
+def test_the_reference_integral_needs_the_memory():
+    with pytest.raises(ValueError, match=r"observation\.ref_integral_gain must be 0 without obs_memory"):
+        make_config("practical", ref_integral_gain=2.0)
+
+
+def test_a_format_8_config_loads_without_the_reference_integral():
+    """Format 9 brought observation.ref_integral_*: a format-8 file loads with the integral off."""
+    d = json.loads(json.dumps(sp.to_dict(tiny())))
+    for name in ("ref_integral_gain", "ref_integral_band", "ref_integral_limit"):
+        del d["task"]["observation"][name]
+    assert sp.from_dict({**d, "format": 8}) == tiny()
+    with pytest.raises(ValueError, match='fields "task.observation.ref_integral_gain", .* are missing'):
+        sp.from_dict(d)

@@ -17,7 +17,8 @@ from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim.action_map import hover_action
 from ttd3_jax.sim.config import PLANT_NEUTRAL, make_config
 from ttd3_jax.sim.dynamics import QuadParams
-from ttd3_jax.sim.env import RandomizedTrackingState, TrackingEnv, TrackingState
+from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.env_state import RandomizedTrackingState, TrackingState
 from ttd3_jax.td3 import trainer as T
 
 G = 9.81

@@ -26,6 +26,9 @@ def test_the_robust_preset_randomises_the_plant_and_the_tracks():
     assert rz.active(spec.task) and spec.task.tracks.wide_mix and spec.num_seeds == 3
     assert spec.train.model_horizon > 0  # the model-based actor, as fast
     assert spec.task.observation.preview_s and spec.task.observation.obs_memory  # what it observes
+    assert spec.task.observation.ref_integral_gain > 0  # integral action around the policy
+    state = TrackingEnv(spec.task).reset(jax.random.PRNGKey(0)).pipeline_state
+    assert state.ref_int.shape == (3,)  # kept per env, beside the randomised plant
     assert (
         TrackingEnv(spec.task).actor_observation_size
         == TrackingEnv(sp.preset("fast").task).observation_size + 19

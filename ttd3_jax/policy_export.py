@@ -280,6 +280,30 @@ def memory_spec(cfg: EnvConfig) -> dict:
         ),
         leak=leak,
         dt_s=cfg.control_dt,
+        reference_integral=reference_integral_spec(cfg) if cfg.observation.ref_integral_gain > 0 else None,
+    )
+
+
+def reference_integral_spec(cfg: EnvConfig) -> dict:
+    """How a deployment keeps the integral that shifts the observed reference
+    (``observation.ref_integral_gain``) and applies it."""
+    o = cfg.observation
+    return dict(
+        reset="ref_int = 0 (3) at the start of a flight",
+        update=(
+            "after each control step, before the observation is built (the same p and p_d as "
+            f"error_integral), per axis: e = p_d - p; ref_int = ref_int + dt * e if |e| < "
+            f"{o.ref_integral_band!r} m, else unchanged; dt = {cfg.control_dt!r} s"
+        ),
+        shift=(
+            f"s = clip({o.ref_integral_gain!r} * ref_int, -{o.ref_integral_limit!r}, "
+            f"{o.ref_integral_limit!r}) "
+            "per axis (m); every position part is built with p - s in place of the measured p "
+            "(p, p_ahead_error, error), so the policy tracks p_d + s"
+        ),
+        gain_per_s=o.ref_integral_gain,
+        band_m=o.ref_integral_band,
+        limit_m=o.ref_integral_limit,
     )
 
 

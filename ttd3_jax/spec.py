@@ -13,7 +13,7 @@ import dacite
 import tyro
 
 from ttd3_jax import checks, envs
-from ttd3_jax.sim.config import FIELD_GROUP, PLANT_NEUTRAL, EnvConfig, grouped, make_config
+from ttd3_jax.sim.config import FIELD_GROUP, GROUPS, PLANT_NEUTRAL, EnvConfig, make_config
 from ttd3_jax.sim.track_families import WIDE_MIX
 from ttd3_jax.td3.buffer import transition_bytes
 from ttd3_jax.td3.config import Hyper, TrainConfig, validate_hyper
@@ -23,8 +23,10 @@ from ttd3_jax.td3.trainer import Trainer, make_trainer
 QUADROTOR = "quadrotor"
 PRESETS = ("fast", "robust", "fast_dpg", "fast_model_free", "paper", "mujoco")
 SEED_LIMIT = 2**32  # seeds are uint32 PRNG keys: seed + num_seeds - 1 must stay below this
-CONFIG_FORMAT = 8  # config.json's "format"; files without one were written before it (format 0)
-GROUPED_TASK = 3  # the first format whose "task" holds EnvConfig's groups (before: flat, sim.config.grouped)
+CONFIG_FORMAT = 9  # config.json's "format"; files without one were written before it (format 0)
+GROUPED_TASK = 3  # the first format whose "task" holds EnvConfig's groups (before: flat, grouped below)
+TIME_FIELDS = ("dt", "episode_steps", "action_repeat")  # EnvConfig's own fields besides the groups
+FLAT_RENAMED = {"tracks": "generator"}  # the flat task's names that changed on grouping
 # Fields added to the run spec after runs were first saved (2026-11-22): for each, the first
 # format whose files hold it, and the value that reproduces what a run saved before it did
 # (task fields by their name in EnvConfig's group; migrate puts them in that group).
@@ -46,22 +48,28 @@ ADDED_FIELDS = {
     ("task", "curriculum"): (6, 0.0),  # issue 37: the randomisation's curriculum
     ("task", "vehicles"): (7, []),  # issue 37: one policy for the vehicles between two (sim.vehicle_mix)
     ("task", "preview_s"): (8, []),
+    # 2026-12-05: integral action around the policy (off: gain 0)
+    ("task", "ref_integral_gain"): (9, 0.0),
+    ("task", "ref_integral_band"): (9, 0.005),
+    ("task", "ref_integral_limit"): (9, 0.01),
 }
 
 
 # The ``robust`` preset's task on top of ``fast``'s (EnvConfig fields by name): what each
 # training episode draws about the plant (sim.randomization; factors on the nominal vehicle,
 # latency in s), the disturbances it flies in, the observation's memory and preview of the
-# reference, and the wide track mixture.  Each range is half as wide as the robustness rows
-# (control.robustness) reach: mass ±15 %, thrust gain ±2 %, rate lag x/÷ √2, latency 0-10 ms,
-# noise x0-0.75, bias ±1 cm, mean wind ±0.15 m/s², OU wind 0.25 m/s².  The full widths (mass
-# ±30 %, latency 0-20 ms, ...) met fewer rows on every seed and cost more precision
+# reference, integral action (the observed reference shifted by 3/s x the integral of the
+# error within 5 mm, up to 1 cm), and the wide track mixture.  Each range is half as wide as
+# the robustness rows (control.robustness) reach: mass ±15 %, thrust gain ±2 %, rate lag
+# x/÷ √2, latency 0-10 ms, noise x0-0.75, bias ±1 cm, mean wind ±0.15 m/s², OU wind
+# 0.25 m/s².  The full widths (mass ±30 %, latency 0-20 ms, ...) met fewer rows on every seed
+# and cost more precision
 # (docs/results.md, "A robust controller").
 ROBUST_TASK = dict(
     mass=(0.85, 1.15), thrust_gain=(0.98, 1.02), tau_rate=(0.707, 1.414), latency=(0.0, 0.01),
     obs_noise=(0.0, 0.75), pos_bias=0.01, wind_mean=0.15,
     wind_sigma=0.25, obs_noise_pos=0.01, obs_noise_vel=0.05, obs_noise_quat=0.005,
-    obs_memory=True, preview_s=(0.1, 0.25, 0.5, 1.0), wide_mix=WIDE_MIX,
+    obs_memory=True, preview_s=(0.1, 0.25, 0.5, 1.0), ref_integral_gain=3.0, wide_mix=WIDE_MIX,
 )  # fmt: skip
 
 
@@ -164,8 +172,8 @@ def preset(name: str, **changes) -> RunSpec:
     lag, latency, observation noise level and position bias, and a mean wind, and flies a
     track of the wide mixture (``sim.track_families``); the policy also observes its last
     action, the leaky integral of the tracking error and the reference 0.1, 0.25, 0.5 and 1 s
-    ahead.  Three seeds side by side; each seed's policy is selected on the wide validation
-    tracks.
+    ahead, and tracks a reference shifted by the integral of its error (integral action).
+    Three seeds side by side; each seed's policy is selected on the wide validation tracks.
     ``mujoco``: the MuJoCo protocol (spec §2.7) on hopper: 1 env, 1 update per step,
     τ = 0.005, c = 0.5, 1e6 steps, L_nom = 1000.
     """
@@ -213,12 +221,27 @@ def to_dict(spec: RunSpec) -> dict:
     return {"format": CONFIG_FORMAT, **dataclasses.asdict(spec)}
 
 
+def grouped(flat: dict) -> dict:
+    """A flat EnvConfig as ``config.json`` formats 0-2 stored it, in today's groups (the one
+    conversion; field values are not checked here)."""
+    out = {k: v for k, v in flat.items() if k in TIME_FIELDS}
+    for group in GROUPS:
+        out[group] = {}
+    for name, value in flat.items():
+        name = FLAT_RENAMED.get(name, name)
+        if name in FIELD_GROUP:
+            out[FIELD_GROUP[name]][name] = value
+        elif name not in TIME_FIELDS:
+            out[name] = value  # not a field: from_dict names it
+    return out
+
+
 def migrate(d) -> dict:
     """``config.json`` as any version wrote it, in the current layout (without ``format``).
     A file of an earlier format (0: no ``format``, written before 2026-12-04) may lack the
     fields :data:`ADDED_FIELDS` added in later formats, which take the value runs had before
     them; nothing else is filled.  Formats 0-2 hold the task flat: it is grouped by
-    :func:`ttd3_jax.sim.config.grouped` first, and task fields are filled in their group."""
+    :func:`grouped` first, and task fields are filled in their group."""
     if not isinstance(d, dict):
         raise ValueError(f"run spec: the file must hold a JSON object, got {type(d).__name__}")
     version = d.get("format", 0)

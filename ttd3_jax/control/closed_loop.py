@@ -18,7 +18,8 @@ from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.action_map import action_to_control, control_to_action, hover_action
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.dynamics import QuadState
-from ttd3_jax.sim.env import TrackingEnv, last_applied_action
+from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.env_state import last_applied_action, reference_shift
 from ttd3_jax.sim.track_mixture import validation_tracks
 from ttd3_jax.sim.vehicle_mix import pin_vehicle
 
@@ -50,7 +51,7 @@ def sensed_controller(controller: Controller, cfg: EnvConfig) -> Controller:
 
     def sensed(s):
         ps, o = s.pipeline_state, s.obs
-        p = o[lay.slice("p")]
+        p = o[lay.slice("p")] + reference_shift(cfg, ps)  # (the observed p, without the policy's shift)
         if cfg.observation.obs_frame == "track":
             p = p + tr.position(ps.track, ps.k, cfg.dt).astype(p.dtype)
         w = o[lay.slice("omega")] if lay.has("omega") else ps.quad.w

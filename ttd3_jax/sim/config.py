@@ -85,6 +85,12 @@ class ObservationConfig:
     observe_rates: bool = False
     # the actor's preview of the reference: p_d these times (s) after p_d,k+L, relative to it (m)
     preview_s: tuple[float, ...] = ()
+    # integral action around the policy (needs obs_memory; gain 0: off): every reference point
+    # observed is shifted by s = clip(gain ∫ e dt, ±limit) per axis, e = p_d,k − p where
+    # |e| < band, else 0 (no wind-up while far off the track)
+    ref_integral_gain: float = 0.0  # 1/s
+    ref_integral_band: float = 0.005  # m
+    ref_integral_limit: float = 0.01  # m
 
     def __post_init__(self):
         f = lambda name: _where("observation", name)  # noqa: E731
@@ -93,6 +99,15 @@ class ObservationConfig:
         if not (ok and list(t) == sorted(set(t))):
             checks.fail(f("preview_s"), f"increasing times in (0, {PREVIEW_MAX_S:g}] s", t)
         checks.number(f("memory_tau"), self.memory_tau, 0, lo_open=True)
+        checks.number(f("ref_integral_gain"), self.ref_integral_gain, 0, 100, unit=" 1/s")
+        for name in ("ref_integral_band", "ref_integral_limit"):
+            checks.number(f(name), getattr(self, name), 0, 1, lo_open=True, unit=" m")
+        if self.ref_integral_gain > 0 and self.obs_memory is not True:
+            checks.fail(
+                f("ref_integral_gain"),
+                "0 without obs_memory (which keeps the integral)",
+                self.ref_integral_gain,
+            )
         checks.integer(f("lookahead_k"), self.lookahead_k, 1)
         checks.one_of(f("err_ref"), self.err_ref, ERR_REFS)
         checks.one_of(f("obs_frame"), self.obs_frame, OBS_FRAMES)
@@ -253,11 +268,8 @@ def _range(field: str, v, lo: float, hi: float | None, *, lo_open: bool = False,
 GROUPS = {"vehicle": VehicleConfig, "observation": ObservationConfig, "reward": RewardConfig,
           "tracks": TracksConfig, "disturbances": DisturbancesConfig,
           "randomization": RandomizationConfig}  # fmt: skip
-TIME_FIELDS = ("dt", "episode_steps", "action_repeat")  # EnvConfig's own fields besides the groups
 # every field of the groups, by name (the names are unique across groups) -> its group
 FIELD_GROUP = {f.name: g for g, kind in GROUPS.items() for f in dataclasses.fields(kind)}
-# the flat EnvConfig of config.json formats 0-2: the names that changed on grouping
-FLAT_RENAMED = {"tracks": "generator"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -343,21 +355,6 @@ def _replace(cfg: EnvConfig, **changes) -> EnvConfig:
         if mine:
             top[group] = dataclasses.replace(top.get(group, getattr(cfg, group)), **mine)
     return dataclasses.replace(cfg, **top) if top else cfg
-
-
-def grouped(flat: dict) -> dict:
-    """A flat EnvConfig as ``config.json`` formats 0-2 stored it, in today's groups (the one
-    conversion; field values are not checked here)."""
-    out = {k: v for k, v in flat.items() if k in TIME_FIELDS}
-    for group in GROUPS:
-        out[group] = {}
-    for name, value in flat.items():
-        name = FLAT_RENAMED.get(name, name)
-        if name in FIELD_GROUP:
-            out[FIELD_GROUP[name]][name] = value
-        elif name not in TIME_FIELDS:
-            out[name] = value  # not a field: from_dict names it
-    return out
 
 
 def error_cost_value(c: EnvConfig, e: float) -> float:

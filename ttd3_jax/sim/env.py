@@ -30,7 +30,6 @@ import math
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
 # mujoco.mjx (imported by brax) prints "Failed to import warp" when the optional
 # GPU package is absent; keep that out of our CLI output.
@@ -52,6 +51,15 @@ from ttd3_jax.sim.dynamics import (
     quat_mul,
     rk4_step,
 )
+from ttd3_jax.sim.env_state import (
+    DelayedTrackingState,
+    IntegralMemoryState,
+    IntegralRandomizedState,
+    MemoryTrackingState,
+    RandomizedTrackingState,
+    TrackingState,
+    reference_shift,
+)
 from ttd3_jax.sim.numerics import _finite, _zero_non_finite, ou_wind_step
 from ttd3_jax.sim.track_mixture import (
     mixture_num_segments,
@@ -70,59 +78,6 @@ def error_cost(cfg: EnvConfig, e: jax.Array) -> jax.Array:
     if cfg.reward.err_cost == "squared":
         return e * e
     return jnp.where(e * e <= 1.0, e, e * e)
-
-
-@struct.dataclass
-class TrackingState:
-    """What the simulator carries between steps (Brax ``State.pipeline_state``)."""
-
-    quad: QuadState
-    k: jax.Array  # int32, physics step index
-    track: tr.Track
-    wind: jax.Array  # (3,) m/s^2, OU acceleration disturbance
-    key: jax.Array  # PRNG key for wind and observation noise
-    ref_next: jax.Array  # (3,) m, p_d(k+1), cached by ``observe`` for the next reward
-
-
-@struct.dataclass
-class DelayedTrackingState(TrackingState):
-    """The state of an env with ``action_delay = 1``.  A subclass, so that undelayed envs
-    (and the checkpoints of their training runs) keep the layout of :class:`TrackingState`."""
-
-    prev_action: jax.Array  # (4,) action the next step applies (the hover action at reset)
-
-
-@struct.dataclass
-class MemoryTrackingState(TrackingState):
-    """The state of an env with ``obs_memory`` (a subclass, like the delayed one)."""
-
-    last_action: jax.Array  # (4,) the action applied by the last step (zeros at reset)
-    err_int: jax.Array  # (3,) m·s, leaky ∫(p_d − p) dt of the observed p
-
-
-@struct.dataclass
-class RandomizedTrackingState(TrackingState):
-    """The state of an env with domain randomisation (``sim.randomization.active``): the
-    episode's plant, the commands still in flight, and the memory parts (a subclass, like
-    the others, so that an env without randomisation keeps its layout)."""
-
-    plant: rz.Plant
-    pending: jax.Array  # (M, 4) the last M commanded actions, newest first (hover at reset)
-    last_action: jax.Array  # (4,) the action the last step commanded (zeros at reset)
-    err_int: jax.Array  # (3,) m·s, leaky ∫(p_d − p) dt of the observed p (obs_memory)
-
-
-def last_applied_action(cfg: EnvConfig, ps: TrackingState, a: jax.Array) -> jax.Array:
-    """The normalised action that the last physics step of the next control step applies,
-    when ``a`` (4,) is commanded from state ``ps``: ``a`` clipped, the previous one under
-    ``action_delay``, or the one the randomised plant's latency picks."""
-    a = jnp.clip(a, -1.0, 1.0)
-    if isinstance(ps, RandomizedTrackingState):
-        stack = jnp.concatenate([a[None].astype(ps.pending.dtype), ps.pending])
-        return stack[rz.commanded_lags(cfg, ps.plant.latency)[-1]]
-    if cfg.disturbances.action_delay:
-        return ps.prev_action
-    return a
 
 
 class TrackingEnv(Env):
@@ -216,6 +171,9 @@ class TrackingEnv(Env):
             ps = MemoryTrackingState(**fields, last_action=jnp.zeros(4, f), err_int=jnp.zeros(3, f))
         else:
             ps = TrackingState(**fields)
+        if c.observation.ref_integral_gain > 0:  # (obs_memory: one of the two above)
+            kind = IntegralRandomizedState if self._randomized else IntegralMemoryState
+            ps = kind(**vars(ps), ref_int=jnp.zeros(3, f))
         obs, ps = self.observe(ps)
         zero = jnp.zeros((), f)
         metrics = {"tracking_error": zero, "energy": zero, "energy_sq": zero, "crashed": zero}
@@ -392,7 +350,13 @@ class TrackingEnv(Env):
         if integrate and c.observation.obs_memory:
             leak = math.exp(-c.control_dt / c.observation.memory_tau)
             p_now = tr.position(ps.track, ps.k, c.dt) if p_ref_now is None else p_ref_now
-            ps = ps.replace(err_int=leak * ps.err_int + c.control_dt * _zero_non_finite(p_now - p))
+            e = _zero_non_finite(p_now - p)
+            ps = ps.replace(err_int=leak * ps.err_int + c.control_dt * e)
+            if c.observation.ref_integral_gain > 0:
+                near = jnp.abs(e) < c.observation.ref_integral_band  # per axis: no wind-up far off
+                ps = ps.replace(ref_int=ps.ref_int + c.control_dt * jnp.where(near, e, 0.0))
+        if c.observation.ref_integral_gain > 0:
+            p = p - reference_shift(c, ps)  # the vehicle against the shifted reference: p − s
         if c.observation.canonical_q_obs:
             q = jnp.where(q[0] < 0, -q, q)
         p_ahead = tr.position(ps.track, ps.k + c.observation.lookahead_k, c.dt)

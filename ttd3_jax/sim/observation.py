@@ -105,8 +105,10 @@ def layout(cfg: EnvConfig) -> ObsLayout:
     """The observation of an env with configuration ``cfg`` (O1, then this project's parts)."""
     rel = cfg.observation.obs_frame == "track"  # positions relative to p_d,k
     where = " relative to p_d,k" if rel else ", world frame"
+    # with ref_integral_gain, p is p - s throughout (memory_spec in policy_export says how)
+    shifted = "; p - s, s the reference integral's shift" if cfg.observation.ref_integral_gain > 0 else ""
     parts = [
-        Part("p", _vec("p - p_d" if rel else "p"), f"position (m){where}"),
+        Part("p", _vec("p - p_d" if rel else "p"), f"position (m){where}{shifted}"),
         Part("v", _vec("v"), "velocity (m/s), world frame"),
         Part("q", tuple(f"q.{a}" for a in "wxyz"), "attitude, unit quaternion body to world, scalar first"),
         Part(
