@@ -17,7 +17,10 @@ project's 2-core CPU VM without AVX-512, ``fingerprint_avx512.txt`` those on one
 names jax and the CPU; compare like with like: ``grep avx512f /proc/cpuinfo`` tells which).
 On an AVX-512 CPU, ``XLA_FLAGS=--xla_cpu_max_isa=AVX2`` gives fingerprint.txt's env lines but
 not its train lines (measured on a 2-core AVX2 EPYC VM on 2026-12-05; the capped lines
-written before then were wrong there).
+written before then were wrong there).  ``fingerprint_avx512.txt`` was written on an AVX-512
+EPYC; on a 2-core AVX-512 Intel Xeon VM every line matches but ``env_obs_noise``, which reads
+``7fff225f8ea838fc`` there both at the file's own commit (468c8ed) and at f73a2b3
+(2026-12-05), so that one line differs by CPU vendor, not by code.
 ``--compare FILE`` checks each line against FILE and exits 1 naming the ones that differ.
 
 Each line is ``name sha256-prefix``:
