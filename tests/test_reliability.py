@@ -19,6 +19,8 @@ from ttd3_jax import checkpoint as ckpt
 from ttd3_jax import memory, run_state, runs, train
 from ttd3_jax import spec as sp
 from ttd3_jax.runner import finished_note
+from ttd3_jax.sim import custom_tracks as ct
+from ttd3_jax.sim.track_mixture import mixture_num_segments, num_validation_tracks
 
 GIB = 2**30
 
@@ -316,3 +318,20 @@ def test_remove_deletes_a_run_killed_before_its_first_checkpoint_and_nothing_els
         train.main(["--remove", str(tmp_path / "nope")]) == 2
         and "not a ttd3_jax run" in capsys.readouterr().err
     )
+
+
+def test_a_long_user_training_track_counts_in_the_memory_check_and_is_named(tmp_path):
+    path = str(tmp_path / "long.csv")  # 60 s: every env's track table grows to its 60,000+ rows
+    ct.to_csv(ct.step((0.0, 0.0, 0.3), 60.0, name="long"), path)
+    _, spec = train.parse(["--total-transitions", "20000", "--epochs", "2", "--buffer-size", "20000",
+                           "--task.tracks.train-tracks", path])  # fmt: skip
+    trainer = sp.trainer_for(spec)
+    rows = trainer.env.env.num_segments
+    assert rows > 60_000 > mixture_num_segments(spec.task)
+    tables = spec.train.num_envs + 1 + num_validation_tracks(spec.task) + 2  # envs, the user's, val, test
+    big = memory.track_bytes(spec, rows)
+    assert big == spec.num_seeds * tables * rows * memory.TRACK_ROW_BYTES
+    assert big > 40 * memory.track_bytes(spec)  # the mixture's tables alone: what was counted before
+    named = rf"the track tables \(--task.tracks.train-tracks {re.escape(path)}\)"
+    with pytest.raises(ValueError, match=named):
+        memory.check(spec, trainer.env.obs_size, trainer.env.action_size, free=big, track_rows=rows)

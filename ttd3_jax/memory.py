@@ -59,17 +59,30 @@ def network_bytes(spec: sp.RunSpec, obs_size: int, action_size: int) -> int:
     return spec.num_seeds * F32 * (NETWORK_COPIES * params + 2 * params + activations)
 
 
-def track_bytes(spec: sp.RunSpec) -> int:
-    """The track tables: one per training env, plus the validation and test tracks."""
+def track_bytes(spec: sp.RunSpec, rows: int | None = None) -> int:
+    """The track tables: one per training env, the users' training tracks, the validation and
+    test tracks, each of ``rows`` rows (the env's ``num_segments``, which a long user track
+    grows; None: the training mixture's)."""
     t = spec.task
-    rows = mixture_num_segments(t)
-    tracks = spec.train.num_envs + num_validation_tracks(t) + 2
+    rows = mixture_num_segments(t) if rows is None else rows
+    tracks = spec.train.num_envs + len(t.tracks.train_tracks) + num_validation_tracks(t) + 2
     return spec.num_seeds * tracks * rows * TRACK_ROW_BYTES
 
 
-def needs(spec: sp.RunSpec, obs_size: int, action_size: int) -> list[Need]:
-    """Every large allocation of ``spec``'s run, with the field that drives it."""
-    c, t = spec.train, spec.task
+def _track_field(spec: sp.RunSpec, rows: int | None) -> tuple[str, object]:
+    """The field that sets the track tables' size, and its value."""
+    t = spec.task
+    if rows is not None and rows > mixture_num_segments(t):
+        return "task.tracks.train_tracks", " ".join(t.tracks.train_tracks)
+    if t.observation.lookahead_k > t.episode_steps:
+        return "task.observation.lookahead_k", t.observation.lookahead_k
+    return "task.episode_steps", t.episode_steps
+
+
+def needs(spec: sp.RunSpec, obs_size: int, action_size: int, track_rows: int | None = None) -> list[Need]:
+    """Every large allocation of ``spec``'s run, with the field that drives it (``track_rows``:
+    the env's track-table rows, see :func:`track_bytes`)."""
+    c = spec.train
     out = [
         Need("the replay buffers", sp.buffer_bytes(spec, obs_size, action_size), "buffer_size",
              c.buffer_size),
@@ -79,14 +92,7 @@ def needs(spec: sp.RunSpec, obs_size: int, action_size: int) -> list[Need]:
              "updates_per_step", c.updates_per_step),
     ]  # fmt: skip
     if spec.is_quadrotor:
-        name = (
-            "task.observation.lookahead_k"
-            if t.observation.lookahead_k > t.episode_steps
-            else "task.episode_steps"
-        )
-        out.append(
-            Need("the track tables", track_bytes(spec), name, max(t.observation.lookahead_k, t.episode_steps))
-        )
+        out.append(Need("the track tables", track_bytes(spec, track_rows), *_track_field(spec, track_rows)))
         rollout = (
             c.model_horizon * c.num_envs * (ROLLOUT_STATE_BYTES + transition_bytes(obs_size, action_size))
         )
@@ -100,10 +106,11 @@ def gib(n: float) -> str:
     return f"{n / 2**30:.3g} GiB"
 
 
-def check(spec: sp.RunSpec, obs_size: int, action_size: int, free: int | None = None) -> int:
+def check(spec: sp.RunSpec, obs_size: int, action_size: int, free: int | None = None,
+          track_rows: int | None = None) -> int:  # fmt: skip
     """Total bytes of :func:`needs`; refuses (``ValueError``, with the figure and the field
     that drives the largest part) a run that would take over ``FRACTION`` of free memory."""
-    parts = needs(spec, obs_size, action_size)
+    parts = needs(spec, obs_size, action_size, track_rows)
     total = sum(p.bytes for p in parts)
     free = available_memory_bytes() if free is None else free
     if free is not None and total > FRACTION * free:

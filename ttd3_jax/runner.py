@@ -161,7 +161,8 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", *, resume: str | None
             f"steps x {c.env_steps_per_step} env steps x {c.num_envs} envs)")  # fmt: skip
     stages, t = Stages(), time.perf_counter()
     trainer = sp.trainer_for(spec)
-    memory.check(spec, trainer.env.obs_size, trainer.env.action_size)  # before anything is written
+    rows = getattr(trainer.env.env, "num_segments", None)  # the tracking env's table size (users' tracks)
+    memory.check(spec, trainer.env.obs_size, trainer.env.action_size, track_rows=rows)  # before any write
     run_dir = resume if resume is not None else runs.new_run_dir(out, spec)
     with run_state.writing(run_dir, log):
         r = _Run(spec=spec, trainer=trainer, run_dir=run_dir, resuming=resume is not None, log=log,

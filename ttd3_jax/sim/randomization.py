@@ -3,11 +3,11 @@
 A :class:`Plant` is the vehicle flown and the errors around it that the controller does not
 see: the thrust-map error, the actuation latency, the observation's noise level and position
 bias, and a constant wind.  :func:`draw` draws one per episode from the ranges of
-:class:`~ttd3_jax.sim.config.RandomizationConfig` (the env's reset does it); :func:`nominal`
-is the plant of the neutral ranges.  The action map always stays that of the config's
-(nominal) vehicle, so that a mass or thrust error is not compensated by the map.  With
-``randomization.vehicles`` the nominal vehicle is drawn too (``sim.vehicle_mix``), known: a
-:class:`VehiclePlant` carries it, for the action map and the observation's descriptor.
+:class:`~ttd3_jax.sim.config.RandomizationConfig` (the env's reset does it).  The action map
+always stays that of the config's (nominal) vehicle, so that a mass or thrust error is not
+compensated by the map.  With ``randomization.vehicles`` the nominal vehicle is drawn too
+(``sim.vehicle_mix``), known: a :class:`VehiclePlant` carries it, for the action map and the
+observation's descriptor.
 
 Units: masses, inertias, thrust and rate limits as factors on the given vehicle; latency in
 physics steps of ``dt`` (drawn from seconds, so a 10 ms-control policy and a 1 ms NMPC get the
@@ -114,18 +114,6 @@ def vehicle_arrays(quad: QuadParams, dtype=None) -> QuadParams:
 
 def _as_arrays(quad: QuadParams, rate_model: str, dtype) -> QuadParams:
     return vehicle_arrays(quad, dtype).replace(rate_model=rate_model)
-
-
-def nominal(cfg: EnvConfig, quad: QuadParams | None = None, dtype=None) -> Plant:
-    """The plant of the neutral ranges: ``quad`` (None: the config's) as it is, no errors
-    (the latency of ``action_delay`` only)."""
-    dtype = dtype or jnp.zeros(()).dtype
-    quad = cfg.vehicle.quad if quad is None else quad
-    zero3 = jnp.zeros(3, dtype)
-    extra = delay_steps(cfg)
-    return Plant(quad=_as_arrays(quad, flown_rate_model(cfg), dtype), thrust_gain=jnp.ones((), dtype),
-                 latency=jnp.asarray(extra, jnp.int32), noise_scale=jnp.ones((), dtype), pos_bias=zero3,
-                 wind_mean=zero3)  # fmt: skip
 
 
 def curriculum_scale(cfg: EnvConfig, progress: jax.Array | None) -> jax.Array | None:
