@@ -72,7 +72,7 @@ def track_bytes(spec: sp.RunSpec, rows: int | None = None) -> int:
 def _track_field(spec: sp.RunSpec, rows: int | None) -> tuple[str, object]:
     """The field that sets the track tables' size, and its value."""
     t = spec.task
-    if rows is not None and rows > mixture_num_segments(t):
+    if t.tracks.train_tracks and rows is not None and rows > mixture_num_segments(t):
         return "task.tracks.train_tracks", " ".join(t.tracks.train_tracks)
     if t.observation.lookahead_k > t.episode_steps:
         return "task.observation.lookahead_k", t.observation.lookahead_k
