@@ -1,7 +1,9 @@
 """NMPC tuning (spec §2.6): weight scale {¼, 1, 4} × horizon N ∈ {10, 20, 40}.
 
 Judged on the 10 validation tracks only (``sim.trajectories.validation_tracks``, drawn
-from the training mixture); the test tracks Spiral-RT and LOS-RT are never run
+from the training mixture), or with ``--wide`` on the wide mixture's 18
+(``sim.track_families.wide_validation_tracks``: the tracks ``--preset robust`` selects its
+policy on); the test tracks Spiral-RT, LOS-RT and the generalisation suite are never run
 here.  Every setting runs the full 3000-step evaluation protocol (``paper`` preset,
 start on p_d(0) at rest and level, no wind) on all validation tracks in one
 ``vmap``, and the table reports the mean and worst Σ‖e‖ over the tracks, the mean
@@ -12,6 +14,7 @@ The node spacing stays at 0.05 s, so N = 10/20/40 is a 0.5/1/2 s horizon.
 
     python experiments/tune_nmpc.py                     # about 2-4 min on one CPU core
     python experiments/tune_nmpc.py --solve-every 10 --json tune.json
+    python experiments/tune_nmpc.py --wide              # the robust preset's validation tracks
 """
 
 from __future__ import annotations
@@ -30,6 +33,8 @@ from ttd3_jax.control.nmpc import NMPCConfig, nmpc_controller
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import PRESETS, make_config
 from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.track_families import WIDE_MIX, wide_validation_families
+from ttd3_jax.sim.track_mixture import num_validation_tracks, validation_tracks
 
 
 def run_setting(env: TrackingEnv, tracks: tr.Track, cfg: NMPCConfig) -> tuple[dict, float, float]:
@@ -50,23 +55,30 @@ def main(argv=None) -> int:
     ap.add_argument("--scales", type=float, nargs="+", default=[0.25, 1.0, 4.0], help="weight_scale grid")
     ap.add_argument("--horizons", type=int, nargs="+", default=[10, 20, 40], help="horizon N grid")
     ap.add_argument("--solve-every", type=int, default=1, help="control steps between re-solves")
+    ap.add_argument("--num-tracks", type=int, default=None, help="first n validation tracks (default: all)")
     ap.add_argument(
-        "--num-tracks", type=int, default=tr.NUM_VALIDATION_TRACKS, help="first n validation tracks"
+        "--wide", action="store_true", help="the wide mixture's validation tracks (--preset robust's)"
     )
     ap.add_argument("--preset", default="paper", choices=PRESETS)
     ap.add_argument("--json", default=None, help="also write the table to this JSON file")
     args = ap.parse_args(argv)
-    if not 1 <= args.num_tracks <= tr.NUM_VALIDATION_TRACKS:
-        ap.error(f"--num-tracks must be in [1, {tr.NUM_VALIDATION_TRACKS}], got {args.num_tracks}")
+    cfg = make_config(args.preset)
+    cfg = cfg.replace(wide_mix=WIDE_MIX) if args.wide else cfg
+    n_bank = num_validation_tracks(cfg)
+    args.num_tracks = n_bank if args.num_tracks is None else args.num_tracks
+    if not 1 <= args.num_tracks <= n_bank:
+        ap.error(f"--num-tracks must be in [1, {n_bank}], got {args.num_tracks}")
 
-    env = TrackingEnv(make_config(args.preset).for_eval("validation"))
-    c = env.config
-    bank = tr.validation_tracks(c.tracks.generator, c.dt, c.horizon_steps, env.num_segments)
+    env = TrackingEnv(cfg.for_eval("validation"))
+    bank = validation_tracks(env.config, env.num_segments)
     tracks = jax.tree.map(lambda x: x[: args.num_tracks], bank)
-    kinds = ["spiral" if int(k) == tr.SPIRAL else "piecewise" for k in np.asarray(tracks.kind)]
+    if args.wide:
+        kinds = list(wide_validation_families(WIDE_MIX))[: args.num_tracks]
+    else:
+        kinds = ["spiral" if int(k) == tr.SPIRAL else "piecewise" for k in np.asarray(tracks.kind)]
     print(
-        f"NMPC tuning on {args.num_tracks} validation tracks ({', '.join(kinds)}); preset={args.preset}, "
-        f"solve_every={args.solve_every}, device={jax.devices()[0].platform}"
+        f"NMPC tuning on {args.num_tracks} {'wide ' * args.wide}validation tracks ({', '.join(kinds)}); "
+        f"preset={args.preset}, solve_every={args.solve_every}, device={jax.devices()[0].platform}"
     )
     head = (
         f"{'scale':>6} {'N':>4} {'mean Σ‖e‖':>10} {'worst Σ‖e‖':>11} {'RMSE':>8} {'max e':>7} "
@@ -101,7 +113,8 @@ def main(argv=None) -> int:
     print(f"choice: weight_scale={best['weight_scale']:g}, horizon={best['horizon']} (lowest mean Σ‖e‖)")
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump({"solve_every": args.solve_every, "rows": rows, "choice": best}, fh, indent=2)
+            json.dump({"solve_every": args.solve_every, "wide": args.wide, "tracks": kinds, "rows": rows,
+                       "choice": best}, fh, indent=2)  # fmt: skip
         print(f"wrote {args.json}")
     return 0
 

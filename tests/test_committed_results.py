@@ -4,25 +4,19 @@ with what the docs say of them.  The behaviour of the code is tested elsewhere."
 from __future__ import annotations
 
 import csv
-import importlib.util
 import os
+
+from experiment_scripts import experiment
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 RESULTS = os.path.join(HERE, "..", "results")
-
-
-def _script(name: str):
-    spec = importlib.util.spec_from_file_location(name, os.path.join(HERE, "..", "experiments", f"{name}.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_committed_mujoco_runs_load_and_the_summary_states_their_budgets():
     """results/mujoco/runs/*/*/config.json are run specs that load; every finished run's budget
     (from its own config) is the one summary.csv and summary.md report, and each is labelled
     by what it is against the 1M-step protocol."""
-    mc = _script("mujoco_compare")
+    mc = experiment("mujoco_compare")
     out = os.path.join(RESULTS, "mujoco")
     b = {(r["task"], r["algo"]): r for r in mc.budgets(out)}
     assert set(b) == {(t, a) for t in mc.TASKS for a in mc.ALGOS}

@@ -5,7 +5,6 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
 import math
 import os
@@ -15,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from experiment_scripts import experiment
 from tiny import tiny
 
 from ttd3_jax import checkpoint as ckpt
@@ -184,10 +184,7 @@ def test_cli_refuses_two_vehicles_for_a_classical_controller(capsys):
 
 
 def test_probe_critics_reads_a_run_and_matches_a_direct_critic_call(tmp_path, capsys):
-    path = os.path.join(os.path.dirname(__file__), "..", "experiments", "probe_critics.py")
-    spec = importlib.util.spec_from_file_location("probe_critics", path)
-    pc = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(pc)
+    pc = experiment("probe_critics")
     run_dir = fake_run_dir(tmp_path / "run")
     r = pc.probe(run_dir)
     # oracle: the same critics called directly on the start state (the fake run's obs stats
@@ -371,11 +368,7 @@ def test_robustness_returns_finite_statistics():
 
 
 def _sweep_module():
-    path = os.path.join(os.path.dirname(__file__), "..", "experiments", "perturbation_sweep.py")
-    spec = importlib.util.spec_from_file_location("perturbation_sweep", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return experiment("perturbation_sweep")
 
 
 def test_perturbation_sweep_prints_its_help():

@@ -106,13 +106,9 @@ def test_one_epoch_with_every_option_trains_and_stays_finite():
 
 
 def test_every_direction_builds_and_fast_model_free_is_the_memory_privileged_direction():
-    import importlib.util
-    import os
+    from experiment_scripts import experiment
 
-    path = os.path.join(os.path.dirname(__file__), "..", "experiments", "model_free.py")
-    spec = importlib.util.spec_from_file_location("model_free", path)
-    mf = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mf)
+    mf = experiment("model_free")
     for name in mf.DIRECTIONS:
         assert mf.spec_for(name).num_seeds == 3
     assert mf.spec_for("memory_privileged") == sp.preset("fast_model_free", num_seeds=3)

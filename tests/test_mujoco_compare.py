@@ -5,22 +5,18 @@ synthetic run directories."""
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import math
 import os
 
 import numpy as np
 import pytest
+from experiment_scripts import experiment
 
 from ttd3_jax import spec as sp
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-spec = importlib.util.spec_from_file_location(
-    "mujoco_compare", os.path.join(HERE, "..", "experiments", "mujoco_compare.py")
-)
-mc = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(mc)
+mc = experiment("mujoco_compare")
 
 
 def test_task_config_is_the_mujoco_preset_resized():

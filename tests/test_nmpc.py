@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from experiment_scripts import experiment
 
 from ttd3_jax.control.closed_loop import Controller, closed_loop, metrics
 from ttd3_jax.control.evaluator import CONTROLLERS, make_controller
@@ -271,3 +272,21 @@ def test_box_qp_solves_random_box_qps(seed):
     np.testing.assert_allclose(z, z_ref, atol=1e-4)
     obj = lambda x: 0.5 * x @ H @ x + g @ x
     assert obj(z.astype(np.float64)) <= obj(z_ref) + 1e-5 * abs(obj(z_ref))
+
+
+def test_tune_nmpc_on_the_wide_validation_tracks(tmp_path, capsys):
+    """``--wide`` tunes on the robust preset's validation bank (its first family: the paper
+    mixture's dynamics tracks), and --num-tracks is bounded by that bank's 18."""
+    import json
+
+    tune = experiment("tune_nmpc")
+    out = tmp_path / "tune.json"
+    args = ["--wide", "--num-tracks", "1", "--horizons", "5", "--scales", "1", "--json", str(out)]
+    assert tune.main(args) == 0
+    d = json.loads(out.read_text())
+    assert d["wide"] is True and d["tracks"] == ["dynamics"]
+    (row,) = d["rows"]
+    assert row["crashes"] == 0 and 0 < row["mean_error"] < 100  # a 3000-step track, tracked
+    with pytest.raises(SystemExit):
+        tune.main(["--wide", "--num-tracks", "19"])
+    assert "--num-tracks must be in [1, 18], got 19" in capsys.readouterr().err

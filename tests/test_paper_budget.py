@@ -3,21 +3,18 @@ on the committed unfinished runs and on refusals that start nothing."""
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import shutil
 import subprocess
 
 import pytest
+from experiment_scripts import experiment
 
 ROOT = os.path.join(os.path.dirname(__file__), "..")
 RUNS = os.path.join(ROOT, "results", "paper_budget", "runs")
 LAUNCHER = os.path.join(ROOT, "experiments", "paper_budget.sh")
 
-SCRIPT = os.path.join(ROOT, "experiments", "paper_budget.py")
-_spec = importlib.util.spec_from_file_location("paper_budget", SCRIPT)
-pb = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(pb)
+pb = experiment("paper_budget")
 
 
 def test_report_labels_unfinished_runs_with_their_transitions(tmp_path):

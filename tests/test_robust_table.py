@@ -5,12 +5,12 @@ run through the whole script.  Everything runs on CPU."""
 from __future__ import annotations
 
 import copy
-import importlib.util
 import json
 import math
 import os
 
 import pytest
+from experiment_scripts import experiment
 from test_evaluate import fake_run_dir
 
 from ttd3_jax import spec as sp
@@ -22,11 +22,7 @@ NMPC_JSON = os.path.join(HERE, "..", "results", "robustness", "nmpc.json")
 
 
 def _script():
-    path = os.path.join(HERE, "..", "experiments", "robust_table.py")
-    spec = importlib.util.spec_from_file_location("robust_table", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return experiment("robust_table")
 
 
 def nmpc_file(n: int) -> dict:

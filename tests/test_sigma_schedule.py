@@ -2,20 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import os
 
 import numpy as np
 import pytest
+from experiment_scripts import experiment
 
 from ttd3_jax import spec as sp
 
-_spec = importlib.util.spec_from_file_location(
-    "sigma_schedule", os.path.join(os.path.dirname(__file__), "..", "experiments", "sigma_schedule.py")
-)
-ss = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(ss)
+ss = experiment("sigma_schedule")
 
 
 def test_delta_of_sum_and_mean_on_known_rewards():
