@@ -231,9 +231,11 @@ PROTOCOL = dict(
     disturbances="none: no wind, no observation noise",
 )
 TEST_TRACKS = ("experiments/tracks/protocol/ in the ttd3_jax repository: spiral_rt.csv, los_rt_seed00.csv "
-               "(the paper's LOS-RT) ... los_rt_seed20.csv, validation_00.csv ... validation_09.csv; t,x,y,z "
-               "at every physics step. LOS-RT and the validation tracks are drawn with JAX's Threefry PRNG: "
-               "outside JAX only these files rebuild them")  # fmt: skip
+               "(the paper's LOS-RT) ... los_rt_seed20.csv, validation_00.csv ... validation_09.csv "
+               "(the fast preset's validation tracks; python experiments/protocol_tracks.py "
+               "--validation-preset P writes preset P's); t,x,y,z at every physics step. LOS-RT and the "
+               "validation tracks are drawn with JAX's Threefry PRNG: outside JAX only these files "
+               "rebuild them")  # fmt: skip
 
 
 def observation_spec(cfg: EnvConfig, obs_size: int) -> dict:
