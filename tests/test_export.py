@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from experiment_scripts import experiment
 from tiny import tiny
 
 from ttd3_jax import policy_export as pe
@@ -96,6 +97,24 @@ def test_a_closed_loop_flown_by_the_onnx_model_reproduces_eval_json(exported):
         assert float(m[k]) == pytest.approx(want[k], rel=1e-4), k
 
 
+def test_a_numpy_reimplementation_from_policy_json_reproduces_eval_json(exported, capsys):
+    """experiments/fly_exported.py flies policy.onnx on the committed protocol CSVs from what
+    policy.json says alone (no ttd3_jax import) and gets the run's Σ‖e‖; a policy whose
+    observation it does not build is refused, naming the part."""
+    run_dir, out = exported
+    fx = experiment("fly_exported")
+    assert fx.main([out, "--tracks", "spiral_rt", "los_rt_seed00"]) == 0
+    rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()[1:]}
+    want = json.load(open(os.path.join(run_dir, "eval.json")))["final_eval"][0]
+    for name, key in (("spiral_rt", "spiral_tracking_error"), ("los_rt_seed00", "los_tracking_error")):
+        assert float(rows[name][1]) == pytest.approx(want[key], rel=1e-4), name
+    meta = json.load(open(os.path.join(out, "policy.json")))
+    meta["observation_spec"]["parts"].append({"name": "preview", "start": 17, "size": 3})
+    assert "parts this script does not build: ['preview']" in fx.check(meta)
+    assert fx.main([str(out), "--tracks", "nope"]) == 2
+    assert "no such file" in capsys.readouterr().err
+
+
 def test_the_sidecar_says_what_the_policy_reads_and_writes(exported):
     run_dir, out = exported
     meta = json.load(open(os.path.join(out, "policy.json")))
@@ -114,6 +133,8 @@ def test_the_sidecar_says_what_the_policy_reads_and_writes(exported):
         "quaternion_sign"
     ]
     assert "scalar first" in meta["conventions"]["attitude"] and "z up" in meta["conventions"]["world_frame"]
+    assert "no drag" in meta["dynamics"]["velocity"]
+    assert "before the first" in meta["evaluation_protocol"]["timing"]
     assert meta["rate_model"]["name"] == cfg.vehicle.quad.rate_model
     assert meta["evaluation_protocol"]["physics_steps"] == cfg.episode_steps
     assert meta["action_repeat"] == cfg.action_repeat

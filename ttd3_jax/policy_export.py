@@ -220,13 +220,26 @@ CONVENTIONS = dict(
     "body-frame vectors into the world frame",
     body_rates="omega (rad/s), body frame; thrust along the body z axis",
 )
+DYNAMICS = dict(
+    position="dp/dt = v",
+    velocity="dv/dt = c R(q) (0, 0, 1) - (0, 0, vehicle.gravity): c = thrust / vehicle.mass when "
+    "vehicle.thrust_units is 'newton', c = thrust otherwise; no drag, no ground plane, no other force",
+    attitude="dq/dt = 1/2 q (x) (0, omega_att), Hamilton product: omega_att = the commanded rates "
+    "under rate_model 'instant', the body rates omega otherwise",
+    body_rates="see rate_model.meaning",
+    source="docs/paper-notes.md section 1 (D1-D7) in the ttd3_jax repository; ttd3_jax.sim.dynamics",
+)
 PROTOCOL = dict(
     start="at rest (v = 0, omega = 0) on the track's first point p_d(0), level (q = (1, 0, 0, 0))",
+    timing="the first observation is made and the first action chosen at k = 0, before the first "
+    "physics step; the next at k = action_repeat, and so on",
     physics_steps=3000,
     physics_dt_s=1e-3,
     integrator="RK4 at the physics step; q renormalised after each step",
     action_hold="each action is held for action_repeat physics steps (the control period)",
     tracking_error="sum over physics steps k = 1 ... 3000 of ||p(k) - p_d(k)|| (m), never terminated early",
+    rmse_and_max_error="of ||p(k) - p_d(k)|| at the control steps k = action_repeat, 2 action_repeat, "
+    "..., 3000 only",
     crash="||p(k) - p_d(k)|| > 1 m at any physics step",
     disturbances="none: no wind, no observation noise",
 )
@@ -369,7 +382,7 @@ def sidecar(run_dir: str, run: runs.LoadedRun, seed: int, best: bool, obs_size: 
     quad, mix = cfg.vehicle.quad, run.env_config.randomization.vehicles
     epoch = run.epoch[seed] if isinstance(run.epoch, dict) else run.epoch
     return dict(observation=observation_layout(cfg, obs_size), obs_size=obs_size,
-                observation_spec=observation_spec(cfg, obs_size), conventions=CONVENTIONS,
+                observation_spec=observation_spec(cfg, obs_size), conventions=CONVENTIONS, dynamics=DYNAMICS,
                 action_size=4, action_map=action_map(cfg), control_hz=1 / cfg.control_dt,
                 action_repeat=cfg.action_repeat, physics_dt_s=cfg.dt, vehicle=dataclasses.asdict(quad),
                 rate_model=dict(name=quad.rate_model, meaning=RATE_MODEL_MEANING[quad.rate_model]),
