@@ -38,13 +38,28 @@ def nmpc_row() -> dict:
             "los_tracking_error": tracks["los_rt"]["tracking_error"]}  # fmt: skip
 
 
+def selected_epochs(run_dir: str, metrics: list[dict]) -> dict[int, dict]:
+    """Per seed, the policy selected on the validation tracks: a finished run's ``eval.json``
+    records it; for an unfinished one (whose ``best/`` is not committed) it is the trainer's
+    rule applied to metrics.csv: the lowest finite validation error, the earlier epoch on a tie."""
+    path = os.path.join(run_dir, "eval.json")
+    if os.path.exists(path):
+        with open(path) as fh:
+            return {int(s["seed"]): s for s in json.load(fh)["selected"]}
+    out = {}
+    for r in metrics:
+        seed, val = int(r["seed"]), float(r["val_tracking_error"])
+        if np.isfinite(val) and (seed not in out or val < out[seed]["val_tracking_error"]):
+            out[seed] = dict(r, epoch=int(r["epoch"]), val_tracking_error=val)
+    return out
+
+
 def run_rows(run_dir: str) -> list[dict]:
     """One row per seed: its curve, last evaluation, selected policy, budget and state."""
     spec = runs.load_spec(run_dir)
     metrics = runs.read_metrics(run_dir)
     finished = os.path.exists(os.path.join(run_dir, "eval.json"))
-    selected = {s["seed"]: s for s in runs.selected_policies(run_dir)} if os.path.isdir(
-        os.path.join(run_dir, "best")) else {}  # fmt: skip
+    selected = selected_epochs(run_dir, metrics)
     out = []
     for seed in range(spec.seed, spec.seed + spec.num_seeds):
         rows = [r for r in metrics if int(r["seed"]) == seed]
