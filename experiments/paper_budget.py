@@ -45,13 +45,25 @@ def selected_epochs(run_dir: str, metrics: list[dict]) -> dict[int, dict]:
     path = os.path.join(run_dir, "eval.json")
     if os.path.exists(path):
         with open(path) as fh:
-            return {int(s["seed"]): s for s in json.load(fh)["selected"]}
+            recorded = json.load(fh).get("selected")
+        if recorded:
+            return {int(s["seed"]): s for s in recorded}
     out = {}
     for r in metrics:
         seed, val = int(r["seed"]), float(r["val_tracking_error"])
         if np.isfinite(val) and (seed not in out or val < out[seed]["val_tracking_error"]):
             out[seed] = dict(r, epoch=int(r["epoch"]), val_tracking_error=val)
     return out
+
+
+def episode_lengths(rows: list[dict], warmup: int) -> list[float]:
+    """Mean training-episode length (env steps) per epoch: the epoch's transitions (after the
+    ``warmup`` random ones) over the episodes that ended in it (crash or truncation): how long
+    the policy survives on the training tracks."""
+    steps = np.diff([float(warmup)] + [float(r["env_steps"]) for r in rows])
+    return [
+        s / e if (e := float(r["episodes"])) > 0 else float("nan") for s, r in zip(steps, rows, strict=True)
+    ]
 
 
 def run_rows(run_dir: str) -> list[dict]:
@@ -71,6 +83,7 @@ def run_rows(run_dir: str) -> list[dict]:
             transitions=int(last["env_steps"]), wall_s=float(sum(r["wall_s"] for r in rows)),
             finished=finished, last={k: last[k] for k in KEYS},
             curve=[(int(r["env_steps"]), *(r[k] for k in KEYS)) for r in rows],
+            episode_steps=episode_lengths(rows, spec.train.warmup_steps * spec.train.num_envs),
             selected=selected.get(seed),
         ))  # fmt: skip
     return out
@@ -85,11 +98,14 @@ def table(rows: list[dict], nmpc: dict, machine: str) -> str:
         "# `paper` preset at the paper's budget (T-TD3 as published)",
         "",
         f"Machine: {machine}. Written by `python experiments/paper_budget.py` from the run directories; "
-        "commands in `commands.txt`. Σ‖e‖ (m, summed over 3000 physics steps); lower is better.",
+        "commands in `commands.txt`. Σ‖e‖ (m, summed over 3000 physics steps); lower is better. "
+        "Training episode: the mean length of the training episodes that ended in an epoch (the env's "
+        "`episode_steps` at most; shorter ones crashed).",
         "",
         "| run | seed | state | transitions | wall h | Spiral-RT (last) | LOS-RT (last) | val (last) "
-        "| selected epoch | Spiral-RT (selected) | LOS-RT (selected) |",
-        "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| selected epoch | Spiral-RT (selected) | LOS-RT (selected) "
+        "| training episode, first → last epoch |",
+        "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in rows:
         state = "finished" if r["finished"] else f"unfinished at {r['transitions']:,} of {r['budget']:,}"
@@ -99,13 +115,14 @@ def table(rows: list[dict], nmpc: dict, machine: str) -> str:
             f"| {fmt(r['last']['spiral_tracking_error'])} | {fmt(r['last']['los_tracking_error'])} "
             f"| {fmt(r['last']['val_tracking_error'])} | {sel.get('epoch', '-')} "
             f"| {fmt(sel.get('spiral_tracking_error', np.nan))} "
-            f"| {fmt(sel.get('los_tracking_error', np.nan))} |"
+            f"| {fmt(sel.get('los_tracking_error', np.nan))} "
+            f"| {r['episode_steps'][0]:.0f} → {r['episode_steps'][-1]:.0f} steps |"
         )
     lines += [
         f"| paper's T-TD3 | | | 3,000,000 (spec A8) | | {PAPER_TTD3['spiral_tracking_error']} "
-        f"| {PAPER_TTD3['los_tracking_error']} | | | | |",
+        f"| {PAPER_TTD3['los_tracking_error']} | | | | | |",
         f"| our NMPC | | | | | {fmt(nmpc['spiral_tracking_error'])} "
-        f"| {fmt(nmpc['los_tracking_error'])} | | | | |",
+        f"| {fmt(nmpc['los_tracking_error'])} | | | | | |",
         "",
     ]
     return "\n".join(lines)
@@ -113,16 +130,16 @@ def table(rows: list[dict], nmpc: dict, machine: str) -> str:
 
 def write_curves(rows: list[dict], nmpc: dict, out: str) -> None:
     with open(os.path.join(out, "curves.csv"), "w") as fh:
-        fh.write("run,seed,transitions," + ",".join(KEYS) + "\n")
+        fh.write("run,seed,transitions," + ",".join(KEYS) + ",training_episode_steps\n")
         for r in rows:
-            for c in r["curve"]:
-                fh.write(f"{r['run']},{r['seed']},{c[0]}," + ",".join(f"{v:.6g}" for v in c[1:]) + "\n")
+            for c, n in zip(r["curve"], r["episode_steps"], strict=True):
+                fh.write(f"{r['run']},{r['seed']},{c[0]}," + ",".join(f"{v:.6g}" for v in (*c[1:], n)) + "\n")
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4), constrained_layout=True)
     for ax, i, name, key in ((axes[0], 1, "Spiral-RT", KEYS[0]), (axes[1], 2, "LOS-RT", KEYS[1])):
         for r in rows:
             xs = [c[0] for c in r["curve"]]
@@ -131,6 +148,14 @@ def write_curves(rows: list[dict], nmpc: dict, out: str) -> None:
         ax.axhline(nmpc[key], color="g", ls=":", label="our NMPC")
         ax.set(yscale="log", xlabel="transitions per seed", ylabel="Σ‖e‖ (m)", title=name)
         ax.grid(alpha=0.3)
+    for r in rows:
+        axes[2].plot([c[0] for c in r["curve"]], r["episode_steps"], marker=".")
+    axes[2].set(
+        xlabel="transitions per seed",
+        ylabel="env steps (an episode ends at the latest at 3000)",
+        title="mean training episode (crash or end)",
+    )
+    axes[2].grid(alpha=0.3)
     axes[0].legend(fontsize=7)
     fig.savefig(os.path.join(out, "curves.png"), dpi=110)
     plt.close(fig)

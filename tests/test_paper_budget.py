@@ -24,12 +24,16 @@ def test_report_labels_each_run_finished_or_unfinished_at_its_transitions(tmp_pa
     table = (tmp_path / "table.md").read_text()
     for r in rows:  # a run is finished iff its eval.json is committed
         assert r["finished"] == os.path.exists(os.path.join(RUNS, r["run"], "eval.json"))
-        if r["finished"]:
-            assert r["transitions"] >= r["budget"]
+        spec = pb.runs.load_spec(os.path.join(RUNS, r["run"]))
+        if r["finished"]:  # the budget rounded down to whole epochs
+            assert r["transitions"] == spec.train.transitions_run > 0.99 * r["budget"]
         else:
             assert f"unfinished at {r['transitions']:,} of {r['budget']:,}" in table
             assert r["transitions"] < r["budget"]
         assert r["selected"] is not None and 1 <= r["selected"]["epoch"] <= len(r["curve"])
+        longest = spec.task.episode_steps
+        assert len(r["episode_steps"]) == len(r["curve"])
+        assert all(0 < n <= longest for n in r["episode_steps"])  # a mean over episodes of ≤ 3000 steps
     assert {r["seed"] for r in rows} == {0, 1, 2}
     curves = (tmp_path / "curves.csv").read_text().splitlines()
     assert len(curves) == 1 + sum(len(r["curve"]) for r in rows)
