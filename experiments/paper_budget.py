@@ -49,10 +49,9 @@ def selected_epochs(run_dir: str, metrics: list[dict]) -> dict[int, dict]:
         if recorded:
             return {int(s["seed"]): s for s in recorded}
     out = {}
-    for r in metrics:
-        seed, val = int(r["seed"]), float(r["val_tracking_error"])
-        if np.isfinite(val) and (seed not in out or val < out[seed]["val_tracking_error"]):
-            out[seed] = dict(r, epoch=int(r["epoch"]), val_tracking_error=val)
+    for r in metrics:  # in epoch order, as the trainer met them
+        if runs.improves_selection(out, int(r["seed"]), r["val_tracking_error"]):
+            out[int(r["seed"])] = dict(r, epoch=int(r["epoch"]))
     return out
 
 
@@ -83,7 +82,7 @@ def run_rows(run_dir: str) -> list[dict]:
             transitions=int(last["env_steps"]), wall_s=float(sum(r["wall_s"] for r in rows)),
             finished=finished, last={k: last[k] for k in KEYS},
             curve=[(int(r["env_steps"]), *(r[k] for k in KEYS)) for r in rows],
-            episode_steps=episode_lengths(rows, spec.train.warmup_steps * spec.train.num_envs),
+            mean_episode=episode_lengths(rows, spec.train.warmup_steps * spec.train.num_envs),
             selected=selected.get(seed),
         ))  # fmt: skip
     return out
@@ -116,7 +115,7 @@ def table(rows: list[dict], nmpc: dict, machine: str) -> str:
             f"| {fmt(r['last']['val_tracking_error'])} | {sel.get('epoch', '-')} "
             f"| {fmt(sel.get('spiral_tracking_error', np.nan))} "
             f"| {fmt(sel.get('los_tracking_error', np.nan))} "
-            f"| {r['episode_steps'][0]:.0f} → {r['episode_steps'][-1]:.0f} steps |"
+            f"| {r['mean_episode'][0]:.0f} → {r['mean_episode'][-1]:.0f} steps |"
         )
     lines += [
         f"| paper's T-TD3 | | | 3,000,000 (spec A8) | | {PAPER_TTD3['spiral_tracking_error']} "
@@ -132,7 +131,7 @@ def write_curves(rows: list[dict], nmpc: dict, out: str) -> None:
     with open(os.path.join(out, "curves.csv"), "w") as fh:
         fh.write("run,seed,transitions," + ",".join(KEYS) + ",training_episode_steps\n")
         for r in rows:
-            for c, n in zip(r["curve"], r["episode_steps"], strict=True):
+            for c, n in zip(r["curve"], r["mean_episode"], strict=True):
                 fh.write(f"{r['run']},{r['seed']},{c[0]}," + ",".join(f"{v:.6g}" for v in (*c[1:], n)) + "\n")
     import matplotlib
 
@@ -149,7 +148,7 @@ def write_curves(rows: list[dict], nmpc: dict, out: str) -> None:
         ax.set(yscale="log", xlabel="transitions per seed", ylabel="Σ‖e‖ (m)", title=name)
         ax.grid(alpha=0.3)
     for r in rows:
-        axes[2].plot([c[0] for c in r["curve"]], r["episode_steps"], marker=".")
+        axes[2].plot([c[0] for c in r["curve"]], r["mean_episode"], marker=".")
     axes[2].set(
         xlabel="transitions per seed",
         ylabel="env steps (an episode ends at the latest at 3000)",

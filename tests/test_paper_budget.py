@@ -32,8 +32,8 @@ def test_report_labels_each_run_finished_or_unfinished_at_its_transitions(tmp_pa
             assert r["transitions"] < r["budget"]
         assert r["selected"] is not None and 1 <= r["selected"]["epoch"] <= len(r["curve"])
         longest = spec.task.episode_steps
-        assert len(r["episode_steps"]) == len(r["curve"])
-        assert all(0 < n <= longest for n in r["episode_steps"])  # a mean over episodes of ≤ 3000 steps
+        assert len(r["mean_episode"]) == len(r["curve"])
+        assert all(0 < n <= longest for n in r["mean_episode"])  # a mean over episodes of ≤ 3000 steps
     assert {r["seed"] for r in rows} == {0, 1, 2}
     curves = (tmp_path / "curves.csv").read_text().splitlines()
     assert len(curves) == 1 + sum(len(r["curve"]) for r in rows)

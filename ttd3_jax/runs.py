@@ -134,13 +134,19 @@ def read_metrics(run_dir: str) -> list[dict]:
         return [{k: float(v) for k, v in r.items()} for r in csv.DictReader(fh)]
 
 
+def improves_selection(record: dict, seed: int, value: float) -> bool:
+    """Spec T8's rule: ``value``, a finite validation error, is lower than the one ``record``
+    holds for ``seed`` (so the earlier epoch keeps a tie)."""
+    return bool(np.isfinite(value)) and (seed not in record or value < record[seed]["val_tracking_error"])
+
+
 def select_best(run_dir: str, spec: sp.RunSpec, epoch: int, ev, ts) -> None:
     """Keep each seed's policy with the lowest validation error so far (spec T8: selection
     on the 10 validation tracks, never on the test tracks) in ``run_dir/best/``."""
     record = ckpt.best_record(run_dir)
     for i in range(spec.num_seeds):
         seed, v = spec.seed + i, float(np.asarray(ev["val_tracking_error"])[i])
-        if np.isfinite(v) and (seed not in record or v < record[seed]["val_tracking_error"]):
+        if improves_selection(record, seed, v):
             stats = index(ts.obs_stats, i) if spec.train.normalize_obs else None
             ckpt.save_policy(run_dir, seed, epoch, v, {"actor": index(ts.actor, i), "obs_stats": stats})
 
