@@ -108,18 +108,8 @@ DIRECTIONS = {
         {"n_step": 3},
         {},
     ),
-    "advantage": (
-        "deep advantage updating (Tallec et al. 2019): critics V(s) + δ A(s, a), A(s, π(s)) = 0, δ = 10 ms",
-        {},
-        {"advantage_dt": 0.01},
-        {},
-    ),
-    "advantage_1khz": (
-        "advantage at 1 kHz (δ = 1 ms): γ^0.1, learning rates and τ x 0.1 (the 100 Hz run's, per second)",
-        {"action_repeat": 1},
-        {"advantage_dt": 0.01},
-        {},
-    ),
+    # advantage, advantage_1khz: deep advantage updating (--advantage-dt), tried and removed; its
+    # results stay in results/model_free/ and the code at commit 17e2d8d (docs/paper-notes.md)
     "fast_dpg_1khz_per_second": (
         "fast_dpg_1khz with advantage_1khz's γ^0.1, learning rates and τ x 0.1, Q critics: its control",
         {"action_repeat": 1},

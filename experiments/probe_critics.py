@@ -27,8 +27,7 @@ import numpy as np
 
 from ttd3_jax.control.closed_loop import closed_loop, hover_controller, metrics, policy_controller
 from ttd3_jax.runs import load_train_state
-from ttd3_jax.sim.action_map import hover_action
-from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.env import TrackingEnv, hover_action
 from ttd3_jax.td3 import networks
 from ttd3_jax.td3.networks import twin_q
 from ttd3_jax.td3.trainer import act

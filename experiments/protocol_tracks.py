@@ -33,8 +33,7 @@ import numpy as np
 from ttd3_jax import spec as sp
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import PREVIEW_MAX_S, make_config
-from ttd3_jax.sim.env import TrackingEnv
-from ttd3_jax.sim.track_mixture import num_validation_tracks, validation_tracks
+from ttd3_jax.sim.env import TrackingEnv, num_validation_tracks, validation_tracks
 
 OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "tracks", "protocol")
 MAX_LOOKAHEAD_K = 100  # physics steps

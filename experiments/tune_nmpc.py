@@ -32,9 +32,8 @@ from ttd3_jax.control.closed_loop import evaluate_on_tracks
 from ttd3_jax.control.nmpc import NMPCConfig, nmpc_controller
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import PRESETS, make_config
-from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.env import TrackingEnv, num_validation_tracks, validation_tracks
 from ttd3_jax.sim.track_families import WIDE_MIX, wide_validation_families
-from ttd3_jax.sim.track_mixture import num_validation_tracks, validation_tracks
 
 
 def run_setting(env: TrackingEnv, tracks: tr.Track, cfg: NMPCConfig) -> tuple[dict, float, float]:

@@ -14,7 +14,6 @@ from tiny import TINY_CLI, tiny
 from ttd3_jax import evaluate, export, run_state, runs, train
 from ttd3_jax import spec as sp
 from ttd3_jax.sim import custom_tracks as ct
-from ttd3_jax.sim.config import GROUPS
 
 HERE = os.path.dirname(__file__)
 T = ["--total-transitions", "20000", "--epochs", "2"]
@@ -145,58 +144,22 @@ def test_a_config_json_missing_a_field_or_of_a_wrong_type_is_refused(tmp_path, e
     assert "resumed" not in capsys.readouterr().out
 
 
-def flat_task(task: dict) -> dict:
-    """A grouped task as config.json formats 0-2 stored it: flat, TrackConfig as "tracks"."""
-    out = {k: v for k, v in task.items() if k not in GROUPS}
-    for group in GROUPS:
-        out.update(task[group])
-    out["tracks"] = out.pop("generator")
-    return out
-
-
-def test_a_format_2_file_with_the_flat_task_loads_grouped():
+def test_a_config_of_another_format_gets_one_line_naming_it(tmp_path, capsys):
+    """config.json has one format: a file of another (an older ttd3_jax's) or none is refused
+    with one line that names its format and what to do, by train --resume, evaluate and export."""
     d = json.loads(json.dumps(sp.to_dict(tiny())))
-    two = {**d, "format": 2, "task": flat_task(d["task"])}
-    assert len(two["task"]) == 58 and sp.from_dict(two) == tiny()
-    two["task"]["wind_sigma"], two["task"]["tracks"]["los_climb_rate"] = 0.3, 0.2
-    task = sp.from_dict(two).task
-    assert task.disturbances.wind_sigma == 0.3 and task.tracks.generator.los_climb_rate == 0.2
-    with pytest.raises(ValueError, match='"task.reward.e_max" is missing'):
-        sp.from_dict({**two, "task": {k: v for k, v in two["task"].items() if k != "e_max"}})
-    with pytest.raises(ValueError, match="wind_sigmaa"):  # an unknown flat field is named
-        sp.from_dict({**two, "task": {**two["task"], "wind_sigmaa": 0.1}})
-    with pytest.raises(ValueError, match='"task.vehicle", "task.observation"'):
-        sp.from_dict({**d, "task": flat_task(d["task"])})  # a flat task in a format-3 file is refused
-
-
-def test_the_migration_knows_only_the_fields_added_later():
-    d = json.loads(json.dumps(sp.to_dict(tiny())))
-    d = {**d, "format": 2, "task": flat_task(d["task"])}  # formats 0-2: the task flat
-    legacy = {k: v for k, v in d.items() if k != "format"}
-    legacy["train"] = {k: v for k, v in d["train"].items() if k != "critic_arch"}
-    legacy["task"] = {k: v for k, v in d["task"].items() if k not in ("obs_memory", "train_tracks")}
-    assert sp.from_dict(legacy) == tiny()  # format 0: filled with their history
-    with pytest.raises(
-        ValueError,
-        match='"train.critic_arch", "task.observation.obs_memory", "task.tracks.train_tracks" are missing',
-    ):
-        sp.from_dict({**legacy, "format": 1})  # format 1 files hold every field but n_step
-    one = {**d, "format": 1, "train": {k: v for k, v in d["train"].items() if k != "n_step"}}
-    assert sp.from_dict(one) == tiny()  # n_step came with format 2: a format-1 file gets 1
-    with pytest.raises(ValueError, match='"train.n_step" is missing'):
-        sp.from_dict({**one, "format": 2})
-    two = {**d, "train": {k: v for k, v in d["train"].items() if k != "advantage_dt"}}
-    assert sp.from_dict(two) == tiny()  # advantage_dt came with format 3: a format-2 file gets 0
-    three = json.loads(json.dumps(sp.to_dict(tiny())))
-    three["train"].pop("advantage_dt")
-    with pytest.raises(ValueError, match='"train.advantage_dt" is missing'):
-        sp.from_dict(three)
-    legacy["task"].pop("lookahead_k")
-    with pytest.raises(ValueError, match='field "task.observation.lookahead_k" is missing'):
-        sp.from_dict(legacy)  # no history: refused
-    with pytest.raises(ValueError, match="format 10 is not one this version reads"):
-        sp.from_dict({**d, "format": 10})
-    assert sp.CONFIG_FORMAT == 9
+    assert sp.from_dict(d) == tiny()
+    for other in (9, None):
+        old = {k: v for k, v in d.items() if k != "format"} if other is None else {**d, "format": other}
+        with pytest.raises(ValueError, match=f"config.json is format {other!r}, written by an older"):
+            sp.from_dict(old)
+    run_dir = runs.new_run_dir(str(tmp_path), tiny())
+    with open(os.path.join(run_dir, "config.json"), "w") as fh:
+        json.dump({**d, "format": 9}, fh)
+    for main, args in ((evaluate.main, [run_dir, "--no-timing"]), (train.main, ["--resume", run_dir]),
+                       (export.main, [run_dir, "--out", str(tmp_path / "p"), "--no-onnx"])):  # fmt: skip
+        message = refused(main, args, capsys)
+        assert "format 9" in message and "Traceback" not in message and len(message.strip().splitlines()) == 1
 
 
 def test_every_committed_run_spec_loads():
@@ -204,19 +167,6 @@ def test_every_committed_run_spec_loads():
     assert len(found) >= 8
     for path in found:
         assert runs.load_spec(os.path.dirname(path)).train.epochs >= 1, path
-    flat = []  # the committed files that hold the flat task (formats 0-2): grouped on load
-    for path in sorted(found):
-        with open(path) as fh:
-            saved = json.load(fh)
-        if saved.get("format", 0) < 3:
-            flat.append(path)
-    assert flat
-    with open(flat[0]) as fh:
-        saved = json.load(fh)
-    assert "e_max" in saved["task"]
-    task = runs.load_spec(os.path.dirname(flat[0])).task
-    now = flat_task(json.loads(json.dumps(sp.to_dict(sp.RunSpec(task=task))))["task"])
-    assert {k: now[k] for k in saved["task"]} == saved["task"]  # every saved value, in its group
 
 
 def test_help_puts_each_option_under_its_own_text(capsys):

@@ -13,10 +13,9 @@ from brax.envs.wrappers import training
 from ttd3_jax.control.closed_loop import closed_loop, hover_controller, metrics
 from ttd3_jax.control.geometric import geometric_controller
 from ttd3_jax.sim import trajectories as tr
-from ttd3_jax.sim.action_map import action_to_control, control_to_action, hover_action
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.dynamics import QuadParams, QuadState
-from ttd3_jax.sim.env import TrackingEnv, _zero_non_finite
+from ttd3_jax.sim.env import TrackingEnv, _zero_non_finite, action_to_control, control_to_action, hover_action
 
 DT = 1e-3
 

@@ -35,10 +35,9 @@ from ttd3_jax.report import TRACE_COLUMNS
 from ttd3_jax.runner import run
 from ttd3_jax.sharding import per_seed
 from ttd3_jax.sim import randomization as rz
-from ttd3_jax.sim.action_map import hover_action
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.dynamics import yaw_of
-from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.env import TrackingEnv, hover_action
 from ttd3_jax.td3 import networks
 from ttd3_jax.td3.networks import init_params, twin_q
 from ttd3_jax.td3.trainer import seed_keys

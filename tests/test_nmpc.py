@@ -18,10 +18,9 @@ from ttd3_jax.control.closed_loop import Controller, closed_loop, metrics
 from ttd3_jax.control.evaluator import CONTROLLERS, make_controller
 from ttd3_jax.control.nmpc import NMPC, NMPCConfig, nmpc_controller, tilt_quaternion
 from ttd3_jax.sim import trajectories as tr
-from ttd3_jax.sim.action_map import action_to_control
 from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.dynamics import QuadState, body_z
-from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.env import TrackingEnv, action_to_control
 
 # 5 nodes 0.1 s apart: a 0.5 s horizon (the default is 20 × 0.05 s)
 SMALL = NMPCConfig(horizon=5, dt_node=0.1, sqp_iters_first=10)

@@ -3,15 +3,12 @@ covers it exactly once, and names the parts only the critics see."""
 
 import dataclasses
 import itertools
-import json
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from tiny import tiny
 
-from ttd3_jax import spec as sp
 from ttd3_jax.sim import observation
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import make_config
@@ -87,27 +84,6 @@ def test_the_error_integral_integrates_the_observed_position_as_policy_json_says
         np.testing.assert_array_equal(np.asarray(s.obs[lay.slice("last_action")]), np.asarray(a))
 
 
-def test_observe_rates_shows_the_flown_body_rates_on_an_instant_vehicle():
-    """``observe_rates``: ω in the observation of an ``instant`` vehicle, where it is the last
-    rate command, and the lagging body rates once a randomised rate time constant flies it."""
-    from ttd3_jax.sim.action_map import action_to_control
-
-    cfg = make_config("practical", observe_rates=True, randomize_init=False)
-    assert observation.layout(cfg).has("omega")
-    assert not observation.layout(make_config("practical")).has("omega")
-    a = jnp.array([0.0, 0.5, -0.3, 0.2])
-    w_cmd = np.asarray(action_to_control(cfg, a)[1:])
-    for tau, lags in ((1.0, False), (2.0, True)):  # factor on tau_rate 0.03 s: 0.06 s lags
-        c = cfg.replace(tau_rate=(tau, tau)) if lags else cfg
-        env = TrackingEnv(c)
-        s = env.step(env.reset(jax.random.PRNGKey(0)), a)
-        w = np.asarray(s.obs[observation.layout(c).slice("omega")])
-        if lags:  # first-order: 1 - exp(-0.01 / 0.06) = 15 % of the command after 10 ms
-            np.testing.assert_allclose(w, w_cmd * (1 - np.exp(-0.01 / 0.06)), rtol=1e-3)
-        else:
-            np.testing.assert_allclose(w, w_cmd, rtol=1e-6)
-
-
 def test_the_preview_shows_the_actor_the_reference_ahead_exactly():
     """observation.preview_s: for each time t, p_d(k + L + t/dt) − p_d(k + L), read by the actor
     (before the critics-only parts), on a known circle and after some steps."""
@@ -137,16 +113,6 @@ def test_a_bad_preview_is_refused_naming_the_field(bad):
 def test_a_preview_lengthens_the_track_to_its_farthest_point():
     base = make_config("practical")
     assert make_config("practical", preview_s=(0.25, 1.5)).horizon_steps == base.horizon_steps + 1500
-
-
-def test_a_format_7_config_loads_without_a_preview():
-    """Format 8 brought observation.preview_s: a format-7 file (without it) loads with none."""
-    d = json.loads(json.dumps(sp.to_dict(tiny())))
-    assert d["task"]["observation"]["preview_s"] == []
-    del d["task"]["observation"]["preview_s"]
-    assert sp.from_dict({**d, "format": 7}) == tiny()
-    with pytest.raises(ValueError, match='"task.observation.preview_s" is missing'):
-        sp.from_dict(d)
 
 
 def test_the_reference_integral_shifts_the_observed_reference_as_policy_json_says():
@@ -218,12 +184,3 @@ def test_the_reference_integral_needs_the_memory():
     with pytest.raises(ValueError, match=r"observation\.ref_integral_gain must be 0 without obs_memory"):
         make_config("practical", ref_integral_gain=2.0)
 
-
-def test_a_format_8_config_loads_without_the_reference_integral():
-    """Format 9 brought observation.ref_integral_*: a format-8 file loads with the integral off."""
-    d = json.loads(json.dumps(sp.to_dict(tiny())))
-    for name in ("ref_integral_gain", "ref_integral_band", "ref_integral_limit"):
-        del d["task"]["observation"][name]
-    assert sp.from_dict({**d, "format": 8}) == tiny()
-    with pytest.raises(ValueError, match='fields "task.observation.ref_integral_gain", .* are missing'):
-        sp.from_dict(d)

@@ -15,8 +15,10 @@ import protocol_tracks as pt  # noqa: E402
 
 from ttd3_jax import spec as sp  # noqa: E402
 from ttd3_jax.sim import trajectories as tr  # noqa: E402
-from ttd3_jax.sim.env import TrackingEnv  # noqa: E402
-from ttd3_jax.sim.track_mixture import validation_tracks  # noqa: E402
+from ttd3_jax.sim.env import (
+    TrackingEnv,  # noqa: E402
+    validation_tracks,  # noqa: E402
+)
 
 
 def test_the_committed_files_equal_the_generator():

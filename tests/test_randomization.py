@@ -3,7 +3,6 @@ physics under each, their validation, the nominal evaluation, and a tiny trainin
 
 from __future__ import annotations
 
-import json
 import math
 
 import jax
@@ -14,10 +13,9 @@ from tiny import tiny
 
 from ttd3_jax import spec as sp
 from ttd3_jax.sim import randomization as rz
-from ttd3_jax.sim.action_map import hover_action
 from ttd3_jax.sim.config import PLANT_NEUTRAL, make_config
 from ttd3_jax.sim.dynamics import QuadParams
-from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.env import TrackingEnv, hover_action
 from ttd3_jax.sim.env_state import RandomizedTrackingState, TrackingState
 from ttd3_jax.td3 import trainer as T
 
@@ -158,57 +156,6 @@ def test_each_episode_draws_its_plant_within_the_ranges():
     np.testing.assert_array_equal(s1.pipeline_state.wind, n1.pipeline_state.wind)
 
 
-def test_the_curriculum_widens_the_ranges_from_the_nominal_plant():
-    """At progress 0 every episode flies the nominal plant without errors; halfway through a
-    curriculum of 0.5 the ranges are full and the draw is the one without a curriculum; at a
-    quarter they are half as wide around the nominal plant."""
-    ranges = dict(mass=(0.8, 1.2), latency=(0.0, 0.02), obs_noise=(0.0, 2.0), pos_bias=0.02, wind_mean=0.3)
-    cfg = make_config("practical", **ranges, curriculum=0.5)
-    keys = jax.random.split(jax.random.PRNGKey(0), 256)
-
-    def plants(progress):
-        return jax.vmap(
-            lambda k: rz.draw(cfg, k, dtype=jnp.float32, scale=rz.curriculum_scale(cfg, progress))
-        )(keys)
-
-    start, quarter, full = plants(0.0), plants(0.25), plants(0.75)
-    q = cfg.vehicle.quad
-    np.testing.assert_array_equal(np.asarray(start.quad.mass), np.float32(q.mass))
-    assert not np.any(start.latency) and not np.any(start.noise_scale)
-    assert not np.any(start.pos_bias) and not np.any(start.wind_mean)
-    mass = np.asarray(quarter.quad.mass) / q.mass
-    assert mass.min() >= 0.9 - 1e-6 and mass.max() <= 1.1 + 1e-6 and mass.max() - mass.min() > 0.15
-    assert set(np.unique(np.asarray(quarter.latency))) == set(range(11))
-    assert np.asarray(quarter.noise_scale).max() <= 1.0 + 1e-6 and np.abs(quarter.wind_mean).max() <= 0.15
-    plain = jax.vmap(lambda k: rz.draw(cfg, k, dtype=jnp.float32))(keys)
-    for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(plain), strict=True):  # (to rounding)
-        np.testing.assert_allclose(a, b, rtol=1e-6)
-    # the env passes its progress on at reset
-    env = TrackingEnv(cfg)
-    assert float(env.reset(jax.random.PRNGKey(3), progress=0.0).pipeline_state.plant.quad.mass) == np.float32(
-        q.mass
-    )
-    assert rz.curriculum_scale(make_config("practical", **ranges), 0.1) is None
-
-
-@pytest.mark.parametrize(
-    "kw, match",
-    [
-        (
-            dict(mass=(0.8, 1.2), curriculum=1.5),
-            r"EnvConfig.randomization.curriculum must be a finite number in",
-        ),
-        (
-            dict(curriculum=0.5),
-            "EnvConfig.randomization.curriculum must be 0 when no plant range is randomised",
-        ),
-    ],
-)
-def test_a_bad_curriculum_is_refused(kw, match):
-    with pytest.raises(ValueError, match=match):
-        make_config("paper", **kw)
-
-
 def test_a_given_vehicle_is_randomised_around():
     cfg = make_config("paper", mass=(1.2, 1.2))
     heavy = QuadParams(mass=3.0, thrust_max=40.0)
@@ -270,19 +217,6 @@ def test_gradients_flow_through_the_randomised_plant():
     assert math.isfinite(float(g)) and float(g) != 0.0
 
 
-def test_a_format_3_config_loads_with_the_nominal_plant():
-    d = json.loads(json.dumps(sp.to_dict(tiny())))
-    three = {**json.loads(json.dumps(d)), "format": 3}
-    three["task"]["randomization"] = {
-        k: v for k, v in d["task"]["randomization"].items() if k not in PLANT_NEUTRAL
-    }
-    assert sp.from_dict(three) == tiny()
-    with pytest.raises(ValueError, match='"task.randomization.mass", .* are missing'):
-        sp.from_dict({**three, "format": 4})
-    d["task"]["randomization"]["latency"] = [0.0, 0.01]  # a list in JSON
-    assert sp.from_dict(d).task.randomization.latency == (0.0, 0.01)
-
-
 @pytest.mark.slow  # tests/test_robust.py's tiny robust run covers it by default
 def test_a_tiny_randomised_run_trains():
     task = sp.preset("fast_dpg").task.replace(mass=(0.9, 1.1), latency=(0.0, 0.02), thrust_gain=(0.95, 1.05),
@@ -294,15 +228,3 @@ def test_a_tiny_randomised_run_trains():
     assert np.all(np.isfinite(np.asarray(m["critic_loss"])))
     assert np.isfinite(float(jax.jit(t.evaluate)(ts)["spiral_tracking_error"]))
 
-
-def test_the_trainer_tells_the_env_its_progress():
-    """With a curriculum the trainer's resets draw from ranges no wider than its progress
-    allows: after the warm-up every plant's mass is within (n_tr / run) / curriculum of ±10 %."""
-    task = sp.preset("fast_dpg").task.replace(mass=(0.9, 1.1), curriculum=0.5)
-    s = tiny(task=task)
-    t = sp.trainer_for(s)
-    assert t.setup.env.curriculum
-    ts = jax.jit(t.init)(T.seed_keys(0, 1)[0], s.hp)
-    width = 0.1 * min(1.0, int(ts.n_tr) / s.train.transitions_run / 0.5)
-    mass = np.asarray(ts.env_state.pipeline_state.plant.quad.mass) / task.vehicle.quad.mass
-    assert 0 < width < 0.1 and np.abs(mass - 1).max() <= width + 1e-6

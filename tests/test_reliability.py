@@ -20,7 +20,7 @@ from ttd3_jax import memory, run_state, runs, train
 from ttd3_jax import spec as sp
 from ttd3_jax.runner import finished_note
 from ttd3_jax.sim import custom_tracks as ct
-from ttd3_jax.sim.track_mixture import mixture_num_segments, num_validation_tracks
+from ttd3_jax.sim.env import mixture_num_segments, num_validation_tracks
 
 GIB = 2**30
 

@@ -14,8 +14,7 @@ from ttd3_jax import runs
 from ttd3_jax import spec as sp
 from ttd3_jax.runner import run
 from ttd3_jax.sim import randomization as rz
-from ttd3_jax.sim.env import TrackingEnv
-from ttd3_jax.sim.track_mixture import num_validation_tracks
+from ttd3_jax.sim.env import TrackingEnv, num_validation_tracks
 
 TINY = dict(num_envs=16, total_transitions=16 * 40, warmup_transitions=16 * 8, buffer_size=16 * 64,
             batch_size=64, updates_per_step=2, epochs=2, hidden=(32, 32), model_horizon=2)  # fmt: skip

@@ -18,7 +18,8 @@ from ttd3_jax.td3 import dpg, model_based, networks
 from ttd3_jax.td3 import noise as nz
 from ttd3_jax.td3 import trainer as T
 from ttd3_jax.td3.config import Hyper, NoiseConfig, TrainConfig, validate_hyper
-from ttd3_jax.td3.losses import actor_loss, critic_loss
+from ttd3_jax.td3.core import critic_loss
+from ttd3_jax.td3.dpg import actor_loss
 from ttd3_jax.td3.networks import init_params, make_networks, twin_q
 
 # --------------------------------------------------------------------------- config
@@ -399,7 +400,7 @@ def test_model_actor_loss_is_the_rollout_return_and_its_gradient_matches_finite_
     hp = s.hp
     ts = ts.replace(noise=ts.noise.replace(sigma=jnp.zeros_like(ts.noise.sigma)))
     key = jax.random.PRNGKey(7)
-    value_grad = jax.jit(jax.value_and_grad(lambda a: model_based.model_loss(t.setup, a, ts, hp, key)[0]))
+    value_grad = jax.jit(jax.value_and_grad(lambda a: model_based.model_loss(a, t.setup, ts, hp, key)[0]))
     loss, g = value_grad(ts.actor)
     st, ret, alive = ts.env_state, jnp.zeros(s.train.num_envs), jnp.ones(s.train.num_envs)
     step = jax.jit(jax.vmap(t.env.env.step))
@@ -433,7 +434,8 @@ def test_the_paper_update_moves_the_actor_and_targets_every_policy_delay_updates
     takes the ∂Q/∂a step (a finite actor loss) and moves the target networks."""
     s, t, ts = tiny_trainer
     assert s.train.policy_delay == 2 and s.train.updates_per_step == 2
-    out, (c_loss, a_loss, _) = jax.jit(lambda ts: dpg.update(t.setup, ts, s.hp, jax.random.PRNGKey(5), j))(ts)
+    x = (jax.random.PRNGKey(5), j)
+    out, (c_loss, a_loss, _) = jax.jit(lambda ts: dpg.update(t.setup, s.hp, ts, x))(ts)
     assert changed(out.critic, ts.critic) and np.isfinite(float(c_loss))
     assert changed(out.actor, ts.actor) == actor_moves == changed(out.target_critic, ts.target_critic)
     assert np.isfinite(float(a_loss)) == actor_moves
@@ -445,7 +447,8 @@ def test_the_model_based_update_never_moves_the_actor(model_trainer):
     rollout); every d-th one moves the targets."""
     s, t, ts = model_trainer
     for j in (0, 1):
-        out, _ = jax.jit(lambda ts, j=j: model_based.update(t.setup, ts, s.hp, jax.random.PRNGKey(5), j))(ts)
+        x = (jax.random.PRNGKey(5), j)
+        out, _ = jax.jit(lambda ts, x=x: model_based.update(t.setup, s.hp, ts, x))(ts)
         assert not changed(out.actor, ts.actor) and changed(out.critic, ts.critic)
         assert changed(out.target_critic, ts.target_critic) == (j == 1)
 

@@ -25,9 +25,8 @@ from ttd3_jax.evaluate import main as evaluate_main
 from ttd3_jax.export import main as export_main
 from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim import vehicle_mix as vm
-from ttd3_jax.sim.action_map import action_to_control
 from ttd3_jax.sim.config import make_config
-from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.env import TrackingEnv, action_to_control
 from ttd3_jax.sim.vehicles import CRAZYFLIE, VEHICLES
 from ttd3_jax.td3.trainer import act
 
@@ -124,17 +123,6 @@ def test_bad_vehicles_are_refused_naming_the_field(kw, match):
         vm.pin_vehicle(
             make_config("practical", hover_centered_thrust=True, vehicles=("paper", "paper")), "crazyflie"
         )
-
-
-def test_a_format_6_config_loads_with_one_vehicle():
-    """Format 6 brought the curriculum, format 7 the vehicles: a format-6 file (written with a
-    curriculum field and no vehicles) loads with the config's vehicle."""
-    d = json.loads(json.dumps(sp.to_dict(tiny())))
-    assert d["format"] == sp.CONFIG_FORMAT and d["task"]["randomization"]["vehicles"] == []
-    del d["task"]["randomization"]["vehicles"]
-    assert sp.from_dict({**d, "format": 6}) == tiny()
-    with pytest.raises(ValueError, match='"task.randomization.vehicles" is missing'):
-        sp.from_dict(d)
 
 
 @pytest.fixture(scope="module")

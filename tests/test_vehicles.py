@@ -18,10 +18,9 @@ from ttd3_jax.control.geometric import geometric_controller
 from ttd3_jax.evaluate import build_parser, check_run_vehicle, classical_env
 from ttd3_jax.evaluate import main as evaluate_main
 from ttd3_jax.sim import vehicles as vh
-from ttd3_jax.sim.action_map import action_to_control, hover_action
 from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.dynamics import QuadParams, QuadState, rk4_step
-from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.env import TrackingEnv, action_to_control, hover_action
 
 
 def test_presets_paper_is_the_default_and_crazyflie_has_its_sources():

@@ -25,8 +25,7 @@ from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import track_families as tf
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import make_config
-from ttd3_jax.sim.env import TrackingEnv
-from ttd3_jax.sim.track_mixture import num_validation_tracks, validation_tracks
+from ttd3_jax.sim.env import TrackingEnv, num_validation_tracks, validation_tracks
 from ttd3_jax.td3.trainer import seed_keys
 
 DT = 1e-3
@@ -152,11 +151,10 @@ def test_no_suite_or_test_track_is_trained_on_through_the_env():
     assert not used & {tuple(np.asarray(k)) for k in held_keys}
 
 
-def test_a_format_3_config_json_gets_the_paper_mixture():
+def test_the_wide_mixture_survives_config_json():
     d = json.loads(json.dumps(sp.to_dict(tiny())))
-    assert d["format"] == sp.CONFIG_FORMAT and d["task"]["tracks"]["wide_mix"] == []
+    assert d["task"]["tracks"]["wide_mix"] == []
     del d["task"]["tracks"]["wide_mix"]
-    assert sp.from_dict({**d, "format": 3}) == tiny()  # grouped task: filled in its group
     with pytest.raises(ValueError, match='"task.tracks.wide_mix" is missing'):
         sp.from_dict(d)
     wide = tiny(task=tiny().task.replace(wide_mix=tf.WIDE_MIX))

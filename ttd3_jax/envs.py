@@ -29,7 +29,7 @@ def quadrotor(cfg: EnvConfig) -> EnvSpec:
         return test_and_validation_metrics(cfg, policy_controller(policy))
 
     return EnvSpec(env, env.observation_size, env.action_size, env.episode_length, evaluate, True,
-                   env.actor_observation_size, cfg.control_dt, cfg.randomization.curriculum > 0)  # fmt: skip
+                   env.actor_observation_size)  # fmt: skip
 
 
 class _WithTerminated:

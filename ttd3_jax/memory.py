@@ -12,7 +12,7 @@ from typing import NamedTuple
 import jax
 
 from ttd3_jax import spec as sp
-from ttd3_jax.sim.track_mixture import mixture_num_segments, num_validation_tracks
+from ttd3_jax.sim.env import mixture_num_segments, num_validation_tracks
 from ttd3_jax.td3.buffer import transition_bytes
 
 FRACTION = 0.7  # of the free memory a run may plan to use

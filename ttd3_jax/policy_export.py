@@ -24,8 +24,8 @@ from ttd3_jax import runs
 from ttd3_jax.sim import observation
 from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim import vehicle_mix as vm
-from ttd3_jax.sim.action_map import thrust_range
 from ttd3_jax.sim.config import EnvConfig
+from ttd3_jax.sim.env import thrust_range
 from ttd3_jax.sim.track_families import FAMILIES
 from ttd3_jax.sim.vehicles import vehicle_of
 from ttd3_jax.td3 import networks

@@ -13,7 +13,7 @@ import dacite
 import tyro
 
 from ttd3_jax import checks, envs
-from ttd3_jax.sim.config import FIELD_GROUP, GROUPS, PLANT_NEUTRAL, EnvConfig, make_config
+from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.track_families import WIDE_MIX
 from ttd3_jax.td3.buffer import transition_bytes
 from ttd3_jax.td3.config import Hyper, TrainConfig, validate_hyper
@@ -23,36 +23,9 @@ from ttd3_jax.td3.trainer import Trainer, make_trainer
 QUADROTOR = "quadrotor"
 PRESETS = ("fast", "robust", "fast_dpg", "fast_model_free", "paper", "mujoco")
 SEED_LIMIT = 2**32  # seeds are uint32 PRNG keys: seed + num_seeds - 1 must stay below this
-CONFIG_FORMAT = 9  # config.json's "format"; files without one were written before it (format 0)
-GROUPED_TASK = 3  # the first format whose "task" holds EnvConfig's groups (before: flat, grouped below)
-TIME_FIELDS = ("dt", "episode_steps", "action_repeat")  # EnvConfig's own fields besides the groups
-FLAT_RENAMED = {"tracks": "generator"}  # the flat task's names that changed on grouping
-# Fields added to the run spec after runs were first saved (2026-11-22): for each, the first
-# format whose files hold it, and the value that reproduces what a run saved before it did
-# (task fields by their name in EnvConfig's group; migrate puts them in that group).
-ADDED_FIELDS = {
-    ("train", "model_horizon"): (1, 0),  # 2026-12-01: the model-based actor update
-    ("train", "critic_arch"): (1, "mlp"),  # 2026-12-03: residual critics
-    ("task", "err_scale"): (1, 0.02),  # 2026-12-03: err_cost="log"
-    ("task", "memory_tau"): (1, 1.0),  # 2026-12-03: the observation's memory
-    ("task", "obs_memory"): (1, False),
-    ("task", "obs_privileged"): (1, False),  # 2026-12-03: the critics' privileged inputs
-    ("task", "train_tracks"): (1, []),  # 2026-12-03: users' tracks in the training mixture
-    ("task", "train_tracks_weight"): (1, 0.25),
-    ("train", "n_step"): (2, 1),  # 2026-12-05: n-step returns
-    ("train", "advantage_dt"): (3, 0.0),  # 2026-12-05: deep advantage updating
-    # 2026-12-06: domain randomisation drawn per episode (sim.randomization), neutral: the nominal plant
-    **{("task", name): (4, list(v) if isinstance(v, tuple) else v) for name, v in PLANT_NEUTRAL.items()},
-    ("task", "wide_mix"): (4, []),  # issue 37: the wide training mixture
-    ("task", "observe_rates"): (5, False),  # issue 37: ω observed on an instant vehicle
-    ("task", "curriculum"): (6, 0.0),  # issue 37: the randomisation's curriculum
-    ("task", "vehicles"): (7, []),  # issue 37: one policy for the vehicles between two (sim.vehicle_mix)
-    ("task", "preview_s"): (8, []),
-    # 2026-12-05: integral action around the policy (off: gain 0)
-    ("task", "ref_integral_gain"): (9, 0.0),
-    ("task", "ref_integral_band"): (9, 0.005),
-    ("task", "ref_integral_limit"): (9, 0.01),
-}
+# config.json's "format": the layout of the run spec this version reads, and the only one.  A
+# file of another format was written by an older ttd3_jax, and is refused with one line.
+CONFIG_FORMAT = 10
 
 
 # The ``robust`` preset's task on top of ``fast``'s (EnvConfig fields by name): what each
@@ -221,53 +194,18 @@ def to_dict(spec: RunSpec) -> dict:
     return {"format": CONFIG_FORMAT, **dataclasses.asdict(spec)}
 
 
-def grouped(flat: dict) -> dict:
-    """A flat EnvConfig as ``config.json`` formats 0-2 stored it, in today's groups (the one
-    conversion; field values are not checked here)."""
-    out = {k: v for k, v in flat.items() if k in TIME_FIELDS}
-    for group in GROUPS:
-        out[group] = {}
-    for name, value in flat.items():
-        name = FLAT_RENAMED.get(name, name)
-        if name in FIELD_GROUP:
-            out[FIELD_GROUP[name]][name] = value
-        elif name not in TIME_FIELDS:
-            out[name] = value  # not a field: from_dict names it
-    return out
-
-
-def migrate(d) -> dict:
-    """``config.json`` as any version wrote it, in the current layout (without ``format``).
-    A file of an earlier format (0: no ``format``, written before 2026-12-04) may lack the
-    fields :data:`ADDED_FIELDS` added in later formats, which take the value runs had before
-    them; nothing else is filled.  Formats 0-2 hold the task flat: it is grouped by
-    :func:`grouped` first, and task fields are filled in their group."""
+def check_format(d) -> dict:
+    """``config.json``'s object without its ``format``; a file of another format is refused."""
     if not isinstance(d, dict):
         raise ValueError(f"run spec: the file must hold a JSON object, got {type(d).__name__}")
-    version = d.get("format", 0)
-    out = {k: v for k, v in d.items() if k != "format"}
-    if version == CONFIG_FORMAT:
-        return out
-    if version not in range(CONFIG_FORMAT) or isinstance(version, bool):
-        raise ValueError(f"run spec: format {version!r} is not one this version reads (0 to {CONFIG_FORMAT})")
-    if version < GROUPED_TASK and isinstance(out.get("task"), dict):
-        out["task"] = grouped(out["task"])
-    for (part, name), (since, value) in ADDED_FIELDS.items():
-        if version < since:
-            out = _filled(out, part, name, value)
-    return out
-
-
-def _filled(d: dict, part: str, name: str, value) -> dict:
-    """``d`` with field ``name`` of ``part`` (``"train"``, or ``"task"``: in the group of
-    ``name``) set to ``value`` where it is missing; a part or group that is not an object is
-    left for :func:`from_dict` to name."""
-    where = d.get(part)
-    if part == "task" and isinstance(where, dict):
-        return {**d, part: _filled(where, FIELD_GROUP[name], name, value)}
-    if isinstance(where, dict) and name not in where:
-        return {**d, part: {**where, name: value}}
-    return d
+    version = d.get("format")
+    if version != CONFIG_FORMAT:
+        raise ValueError(
+            f"run spec: config.json is format {version!r}, written by an older ttd3_jax; this version "
+            f"reads format {CONFIG_FORMAT} only: train the run again, or evaluate it with the ttd3_jax "
+            "commit that wrote it (git log)"
+        )
+    return {k: v for k, v in d.items() if k != "format"}
 
 
 def missing_fields(cls, d: dict, path: str = "") -> list[str]:
@@ -298,10 +236,11 @@ _DACITE = dacite.Config(
 
 
 def from_dict(d: dict) -> RunSpec:
-    """The spec stored by :func:`to_dict`, through :func:`migrate` (dacite builds the nested
-    dataclasses and checks every value's type).  Raises ``ValueError`` naming a field that is
-    missing, does not exist or holds a value of the wrong type: no field takes a default."""
-    d = migrate(d)
+    """The spec stored by :func:`to_dict` (dacite builds the nested dataclasses and checks every
+    value's type).  Raises ``ValueError`` for another format (:func:`check_format`), or naming
+    a field that is missing, does not exist or holds a value of the wrong type: no field takes
+    a default."""
+    d = check_format(d)
     missing = missing_fields(RunSpec, d)
     if missing:
         names, many = ", ".join(f'"{m}"' for m in missing), len(missing) > 1

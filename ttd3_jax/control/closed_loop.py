@@ -15,12 +15,16 @@ from flax import struct
 
 from ttd3_jax.sim import observation
 from ttd3_jax.sim import trajectories as tr
-from ttd3_jax.sim.action_map import action_to_control, control_to_action, hover_action
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.dynamics import QuadState
-from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.env import (
+    TrackingEnv,
+    action_to_control,
+    control_to_action,
+    hover_action,
+    validation_tracks,
+)
 from ttd3_jax.sim.env_state import last_applied_action, reference_shift
-from ttd3_jax.sim.track_mixture import validation_tracks
 from ttd3_jax.sim.vehicle_mix import pin_vehicle
 
 
@@ -157,7 +161,7 @@ def test_and_validation_metrics(cfg: EnvConfig, controller: Controller) -> dict:
     """What a training run reports each epoch (pure; jit it): the test metrics on Spiral-RT
     and LOS-RT seed 0 (``spiral_*``, ``los_*``), in one vmapped closed loop, and
     ``val_tracking_error``, the mean Σ‖e‖ over the validation tracks (spec T8; the wide
-    mixture's with ``tracks.wide_mix`` set: ``sim.track_mixture.validation_tracks``), the only figure
+    mixture's with ``tracks.wide_mix`` set: ``sim.env.validation_tracks``), the only figure
     used to select a policy.  ``controller`` is built for the env of ``cfg``.  With
     ``randomization.vehicles``: the test metrics of the first vehicle, and the validation mean
     averaged over each vehicle's (one policy is selected for all of them)."""

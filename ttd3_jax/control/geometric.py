@@ -16,9 +16,9 @@ import jax.numpy as jnp
 
 from ttd3_jax.control.closed_loop import Controller
 from ttd3_jax.sim import trajectories as tr
-from ttd3_jax.sim.action_map import control_to_action
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.sim.dynamics import QuadParams, QuadState, clip_control, quat_to_rotmat
+from ttd3_jax.sim.env import control_to_action
 
 
 @dataclasses.dataclass(frozen=True)

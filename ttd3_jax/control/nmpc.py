@@ -49,8 +49,8 @@ from jax.scipy.linalg import cho_solve
 from ttd3_jax import checks
 from ttd3_jax.control.closed_loop import Controller
 from ttd3_jax.sim import trajectories as tr
-from ttd3_jax.sim.action_map import control_to_action
 from ttd3_jax.sim.dynamics import QuadParams, QuadState, quat_conj, quat_mul, rk4_step
+from ttd3_jax.sim.env import control_to_action
 
 LINE_SEARCH_ALPHAS = (1.0, 0.5, 0.25, 0.125)
 QP_STEPS = tuple(0.5**i for i in range(10))  # step sizes the box QP's projected Newton tries

@@ -28,7 +28,7 @@ CRASH_GAMMA = 0.99  # the discount the derived crash penalty is sized for (spec 
 EVAL_PROTOCOL_FIELDS = ("track", "los_seed", "randomize_init", "terminate", "wind_sigma", "e_max",
                         "obs_noise_pos", "obs_noise_vel", "obs_noise_quat", "episode_steps",
                         "mass", "inertia", "thrust_max", "thrust_gain", "tau_rate", "rate_limit", "latency",
-                        "obs_noise", "pos_bias", "wind_mean", "curriculum")  # fmt: skip
+                        "obs_noise", "pos_bias", "wind_mean")  # fmt: skip
 LATENCY_MAX_S = 0.05  # s: the largest actuation latency randomization.latency may draw
 # the plant's ranges of RandomizationConfig (lo, hi) and their neutral value (the nominal plant)
 PLANT_FACTORS = ("mass", "inertia", "thrust_max", "thrust_gain", "tau_rate", "rate_limit")
@@ -80,9 +80,6 @@ class ObservationConfig:
     # appended last, for the critics only (the actor sees the observation without them):
     # the wind acceleration (3, m/s²) and p_d 0.5 s and 1 s after p_d,k+L, relative to it (6, m)
     obs_privileged: bool = False
-    # observe the body rates ω (a gyro) on an ``instant`` vehicle too, where they are the last
-    # command unless a randomised plant lags them (``first_order`` and ``torque`` always do)
-    observe_rates: bool = False
     # the actor's preview of the reference: p_d these times (s) after p_d,k+L, relative to it (m)
     preview_s: tuple[float, ...] = ()
     # integral action around the policy (needs obs_memory; gain 0: off): every reference point
@@ -111,7 +108,7 @@ class ObservationConfig:
         checks.integer(f("lookahead_k"), self.lookahead_k, 1)
         checks.one_of(f("err_ref"), self.err_ref, ERR_REFS)
         checks.one_of(f("obs_frame"), self.obs_frame, OBS_FRAMES)
-        for name in ("canonical_q_obs", "obs_memory", "obs_privileged", "observe_rates"):
+        for name in ("canonical_q_obs", "obs_memory", "obs_privileged"):
             checks.boolean(f(name), getattr(self, name))
 
 
@@ -222,10 +219,6 @@ class RandomizationConfig:
     pos_bias: float | tuple[float, float, float] = 0.0  # m, ± per axis: a constant bias of the observed
     #   position; a 3-tuple instead is that bias itself, the same every episode (robustness rows)
     wind_mean: float = 0.0  # m/s², ± per axis: a constant wind acceleration added to the OU wind
-    # fraction of a training run over which the plant ranges above widen linearly from the nominal
-    # plant without errors (factors 1, no latency, bias, mean wind or observation noise) to their
-    # full width (sim.randomization.curriculum_scale); 0: the full ranges from the first episode
-    curriculum: float = 0.0
     # () = the config's vehicle; two of sim.vehicles.VEHICLE_NAMES: each episode flies one between them, known
     # to the policy (sim.vehicle_mix); quad then gives only rate_model, gravity, thrust_units. (a, a): a alone
     vehicles: tuple[str, ...] = ()
@@ -238,7 +231,6 @@ class RandomizationConfig:
                         "vehicle between them)", v)  # fmt: skip
         object.__setattr__(self, "vehicles", tuple(v))
         checks.boolean(f("randomize_init"), self.randomize_init)
-        checks.number(f("curriculum"), self.curriculum, 0, 1)
         for name in ("init_pos", "init_vel", "init_tilt_deg", "init_yaw_deg", "wind_mean"):
             checks.number(f(name), getattr(self, name), 0)
         if isinstance(self.pos_bias, tuple | list):
@@ -336,11 +328,11 @@ class EnvConfig:
         """The evaluation protocol (spec §2.5): fixed track, start on p_d(0) at rest and
         level, no early termination, no observation noise, optional wind, and one crash
         threshold for every controller (``e_max = EVAL_CRASH_M``), and the nominal plant (no
-        domain randomisation: ``PLANT_NEUTRAL``, no curriculum).  It sets the fields in
+        domain randomisation: ``PLANT_NEUTRAL``).  It sets the fields in
         ``EVAL_PROTOCOL_FIELDS`` (``episode_steps`` stays: 3000, the paper's), and with
         ``randomization.vehicles`` flies the first of them (``vehicle_mix.pin_vehicle``: another)."""
         quiet = dict(randomize_init=False, terminate=False, e_max=EVAL_CRASH_M, obs_noise_pos=0.0,
-                     obs_noise_vel=0.0, obs_noise_quat=0.0, curriculum=0.0, **PLANT_NEUTRAL)  # fmt: skip
+                     obs_noise_vel=0.0, obs_noise_quat=0.0, **PLANT_NEUTRAL)  # fmt: skip
         return vm.pin_vehicle(self).replace(track=track, los_seed=los_seed, wind_sigma=wind_sigma, **quiet)
 
 
@@ -415,10 +407,6 @@ def _validate_hover(c: EnvConfig, q: QuadParams) -> None:
     most = q.thrust_max * min(r.thrust_gain[0], r.thrust_max[0])
     hover = q.hover_thrust * (r.mass[1] if q.thrust_units == "newton" else 1.0)
     if plant_is_nominal(r):
-        if r.curriculum > 0:
-            checks.fail(
-                "EnvConfig.randomization.curriculum", "0 when no plant range is randomised", r.curriculum
-            )
         return  # the vehicle's own check holds
     if most <= hover:
         raise ValueError(

@@ -39,9 +39,9 @@ with contextlib.redirect_stdout(io.StringIO()):
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import observation
 from ttd3_jax.sim import randomization as rz
+from ttd3_jax.sim import track_families as tf
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim import vehicle_mix as vm
-from ttd3_jax.sim.action_map import action_to_control, hover_action
 from ttd3_jax.sim.config import PRIVILEGED_AHEAD_S, EnvConfig, make_config
 from ttd3_jax.sim.dynamics import (
     QuadParams,
@@ -60,13 +60,132 @@ from ttd3_jax.sim.env_state import (
     TrackingState,
     reference_shift,
 )
-from ttd3_jax.sim.numerics import _finite, _zero_non_finite, ou_wind_step
-from ttd3_jax.sim.track_mixture import (
-    mixture_num_segments,
-    mixture_track,
-    num_validation_tracks,
-    validation_tracks,
-)
+
+# -- the action map: a normalised action <-> thrust and body rates of the nominal vehicle (O2)
+
+
+def thrust_range(cfg: EnvConfig, quad: QuadParams | None = None):
+    """``(min, max, hover)`` collective thrust of the action map (N, or the thrust units)."""
+    if quad is not None:  # a nominal vehicle of randomization.vehicles (thrust_map_mass None)
+        return quad.thrust_min, quad.thrust_max, quad.hover_thrust
+    q = cfg.vehicle.quad
+    hover = q.hover_thrust
+    if cfg.vehicle.thrust_map_mass is not None and q.thrust_units == "newton":
+        hover = q.gravity * cfg.vehicle.thrust_map_mass
+    return q.thrust_min, q.thrust_max, hover
+
+
+def action_to_control(cfg: EnvConfig, a: jax.Array, quad: QuadParams | None = None) -> jax.Array:
+    """Normalised action (..., 4) in [-1, 1] -> physical control ``[thrust, ω_cmd]`` (O2).
+
+    Default: thrust = f_min + (a0 + 1)/2 (f_max - f_min); rates affine onto
+    [rate_min, rate_max].  ``hover_centered_thrust`` maps a0 = 0 to the hover thrust.
+    """
+    lo, hi, hover = thrust_range(cfg, quad)
+    a0 = a[..., 0]
+    if cfg.vehicle.hover_centered_thrust:
+        f = jnp.where(a0 >= 0, hover + a0 * (hi - hover), hover + a0 * (hover - lo))
+    else:
+        f = lo + 0.5 * (a0 + 1.0) * (hi - lo)
+    q = cfg.vehicle.quad if quad is None else quad
+    rlo, rhi = q.rate_min, q.rate_max
+    w = rlo + 0.5 * (a[..., 1:] + 1.0) * (rhi - rlo)
+    return jnp.concatenate([f[..., None], w], -1)
+
+
+def control_to_action(cfg: EnvConfig, u: jax.Array, quad: QuadParams | None = None) -> jax.Array:
+    """Inverse of :func:`action_to_control` (for controllers with physical outputs)."""
+    lo, hi, hover = thrust_range(cfg, quad)
+    f = u[..., 0]
+    if cfg.vehicle.hover_centered_thrust:
+        a0 = jnp.where(f >= hover, (f - hover) / (hi - hover), (f - hover) / (hover - lo))
+    else:
+        a0 = 2.0 * (f - lo) / (hi - lo) - 1.0
+    q = cfg.vehicle.quad if quad is None else quad
+    rlo, rhi = q.rate_min, q.rate_max
+    aw = 2.0 * (u[..., 1:] - rlo) / (rhi - rlo) - 1.0
+    return jnp.concatenate([a0[..., None], aw], -1)
+
+
+def hover_action(cfg: EnvConfig, quad: QuadParams | None = None) -> jax.Array:
+    """Normalised action that holds hover (a0 = 0.4715 with the paper's numbers).  With
+    ``thrust_map_mass`` set: the hover action of that (nominal) mass."""
+    u = jnp.array([thrust_range(cfg, quad)[2], 0.0, 0.0, 0.0])
+    return control_to_action(cfg, u, quad)
+
+
+# -- the tracks a config trains and is selected on: the paper's mixture, or the wide one ---
+
+
+def mixture_num_segments(cfg: EnvConfig) -> int:
+    """Track-table size of the training mixture and the validation tracks of ``cfg``: the paper
+    mixture's, or the wide mixture's when ``tracks.wide_mix`` is set (users' tracks may need more)."""
+    if cfg.tracks.wide_mix:
+        return tf.wide_num_segments(cfg.horizon_steps, cfg.dt)
+    return tr.train_num_segments(cfg.horizon_steps, cfg.dt)
+
+
+def validation_tracks(cfg: EnvConfig, num_segments: int | None = None) -> tr.Track:
+    """The fixed validation tracks of ``cfg`` (batched; the only tracks a policy is selected
+    on): the paper mixture's 10, or the wide mixture's (``track_families.wide_validation_tracks``,
+    2 per family of positive weight) when ``tracks.wide_mix`` is set."""
+    t, n = cfg.tracks, num_segments or mixture_num_segments(cfg)
+    if t.wide_mix:
+        return tf.wide_validation_tracks(t.wide_mix, cfg.dt, cfg.horizon_steps, n, cfg=t.generator)
+    return tr.validation_tracks(t.generator, cfg.dt, cfg.horizon_steps, n)
+
+
+def num_validation_tracks(cfg: EnvConfig) -> int:
+    """How many tracks :func:`validation_tracks` holds."""
+    if cfg.tracks.wide_mix:
+        return len(tf.wide_validation_families(cfg.tracks.wide_mix))
+    return tr.NUM_VALIDATION_TRACKS
+
+
+# -- numerics: the OU wind step, non-finite masks (each written for XLA:CPU's fusion) ------
+
+
+def ou_wind_step(c: EnvConfig, wind: jax.Array, key: jax.Array):
+    """One physics step (``c.dt``) of the OU wind acceleration ``wind`` (3,) m/s², with
+    stationary std ``c.disturbances.wind_sigma`` and correlation time ``c.disturbances.wind_tau``; returns
+    ``(wind, key)`` (one split and 3 normals of ``jax.random``)."""
+    key, sub = jax.random.split(key)
+    phi = math.exp(-c.dt / c.disturbances.wind_tau)
+    xi = jax.random.normal(sub, (3,), wind.dtype)
+    return phi * wind + c.disturbances.wind_sigma * math.sqrt(1.0 - phi * phi) * xi, key
+
+
+@jax.custom_jvp
+def _zero_non_finite(x: jax.Array) -> jax.Array:
+    """``x`` with its NaN and inf entries set to +0.0, as ``jnp.where(jnp.isfinite(x), x, 0)``
+    (values and derivative), but testing the exponent bits so that ``x`` is read once: XLA:CPU
+    then fuses the observation's concatenation into the mask instead of writing it out."""
+    return _mask_bits(x)
+
+
+def _mask_bits(x: jax.Array) -> jax.Array:
+    f = jnp.finfo(x.dtype)
+    ints = jnp.dtype(f"int{f.bits}")
+    exp = ((1 << f.nexp) - 1) << f.nmant  # all exponent bits set: inf or NaN
+    bits = jax.lax.bitcast_convert_type(x, ints)
+    mask = jnp.asarray(exp, ints)
+    return jax.lax.bitcast_convert_type(jnp.where(bits & mask == mask, 0, bits), x.dtype)
+
+
+@_zero_non_finite.defjvp
+def _zero_non_finite_jvp(primals, tangents):
+    (x,), (t,) = primals, tangents
+    return _mask_bits(x), jnp.where(jnp.isfinite(x), t, 0.0)
+
+
+def _finite(x: QuadState) -> jax.Array:
+    """True when every state entry is finite (a NaN or inf anywhere makes the sum non-finite);
+    added one by one, since a ``jnp.sum`` reduction would end the step's fusion on XLA:CPU."""
+    return jnp.isfinite(sum(leaf[..., i] for leaf in jax.tree.leaves(x) for i in range(leaf.shape[-1])))
+
+
+# -- the env -------------------------------------------------------------------------------
+
 
 _USER_TAG = 0x05E7  # folded into a reset's track key to pick users' training tracks
 
@@ -115,20 +234,24 @@ class TrackingEnv(Env):
     episode_length = property(lambda self: self.config.episode_length)
     num_segments = property(lambda self: self._n_seg)
 
-    def reset(self, rng: jax.Array, vehicle: QuadParams | None = None, progress=None) -> State:
+    def reset(self, rng: jax.Array, vehicle: QuadParams | None = None) -> State:
         """New episode: a track drawn per ``config.tracks.track`` and an initial state (R5), flying
-        ``vehicle`` (None: the config's ``quad``; see :meth:`reset_with_track`).  ``progress``:
-        the fraction of the training run done, for the randomisation's curriculum."""
+        ``vehicle`` (None: the config's ``quad``; see :meth:`reset_with_track`)."""
         k_track, k_rest = jax.random.split(rng)
-        return self.reset_with_track(k_rest, self.sample_track(k_track), vehicle, progress)
+        return self.reset_with_track(k_rest, self.sample_track(k_track), vehicle)
 
     def sample_track(self, rng: jax.Array) -> tr.Track:
         """The track an episode uses under ``config.tracks.track``."""
         c, n = self.config, self._n_seg
-        if c.tracks.track == "train":
+        if c.tracks.track == "train":  # the paper's mixture, or the wide one (sim.track_families)
+            t, n_mix = c.tracks, n if self._user is None else self._mix_n
+            if t.wide_mix:
+                mix = tf.sample_wide_track(rng, t.wide_mix, c.dt, c.horizon_steps, n_mix, cfg=t.generator)
+            else:
+                mix = tr.sample_train_track(rng, t.generator, c.dt, c.horizon_steps, n_mix)
             if self._user is None:
-                return mixture_track(c, rng, n)
-            mix = ct.pad(mixture_track(c, rng, self._mix_n), n, c.dt)
+                return mix
+            mix = ct.pad(mix, n, c.dt)
             k_pick, k_use = jax.random.split(jax.random.fold_in(rng, _USER_TAG))
             user = jax.tree.map(
                 lambda x: x[jax.random.randint(k_pick, (), 0, len(c.tracks.train_tracks))], self._user
@@ -145,11 +268,9 @@ class TrackingEnv(Env):
             c.tracks.los_seed, c.tracks.generator, num_segments=n, dt=c.dt, horizon_steps=c.horizon_steps
         )
 
-    def reset_with_track(self, rng: jax.Array, track: tr.Track, vehicle: QuadParams | None = None,
-                         progress=None) -> State:  # fmt: skip
+    def reset_with_track(self, rng: jax.Array, track: tr.Track, vehicle: QuadParams | None = None) -> State:
         """New episode on a given track (used by evaluation over many tracks), flying
-        ``vehicle`` (``randomization.vehicle_arrays``; None: the config's ``quad``, as constants),
-        with the plant's ranges at ``progress`` of the curriculum (None: full)."""
+        ``vehicle`` (``randomization.vehicle_arrays``; None: the config's ``quad``, as constants)."""
         c = self.config
         k_init, k_wind, k_next = jax.random.split(rng, 3)
         quad = self._initial_state(k_init, tr.position(track, 0, c.dt))
@@ -160,7 +281,7 @@ class TrackingEnv(Env):
         fields = dict(quad=quad, k=jnp.zeros((), jnp.int32), track=track, wind=wind, key=k_next)
         fields["ref_next"] = jnp.zeros(3, f)
         if self._randomized:  # the plant, drawn around ``vehicle`` (a key folded off rng's other draws)
-            plant = rz.draw(c, rng, vehicle, f, rz.curriculum_scale(c, progress))
+            plant = rz.draw(c, rng, vehicle, f)
             hover = hover_action(c, rz.nominal_vehicle(plant)).astype(f)  # the known vehicle's map
             pending = jnp.broadcast_to(hover, (rz.pending_size(c), 4))
             ps = RandomizedTrackingState(**fields, plant=plant, pending=pending, last_action=jnp.zeros(4, f),
@@ -324,9 +445,6 @@ class TrackingEnv(Env):
             or c.disturbances.obs_noise_vel > 0
             or c.disturbances.obs_noise_quat > 0
         ):
-            # jax.random here, not ttd3_jax.sim.rng: the same draws, but fused with this arithmetic
-            # they change the last bit of a few observations (tests/test_rng.py), and this runs
-            # once per env step (robustness evaluation), not once per physics step
             key, kp, kv, kq = jax.random.split(ps.key, 4)
             scale = ps.plant.noise_scale if self._randomized else 1.0  # (a Python 1.0: the same program)
             p = p + scale * c.disturbances.obs_noise_pos * jax.random.normal(kp, (3,), p.dtype)

@@ -119,7 +119,7 @@ def layout(cfg: EnvConfig) -> ObsLayout:
         Part("p_ahead_error", _vec("p_ahead - p"), "p_d,k+L - p (m)"),
         Part("error", ("|p_err - p|",), "||p_err - p|| (m), p_err = p_d,k or p_d,k+1 (err_ref)"),
     ]
-    if cfg.vehicle.quad.rate_model != "instant" or cfg.observation.observe_rates:
+    if cfg.vehicle.quad.rate_model != "instant":
         parts.append(Part("omega", _vec("omega"), "body rates (rad/s), body frame"))
     if cfg.observation.obs_memory:
         parts.append(Part("last_action", tuple(f"last_action.{i}" for i in range(4)),

@@ -57,7 +57,7 @@ def active(cfg: EnvConfig) -> bool:
 
 def nominal_vehicle(plant: Plant) -> QuadParams | None:
     """The episode's known vehicle when it is drawn (:class:`VehiclePlant`), else ``None`` (the
-    config's: ``sim.action_map``'s default)."""
+    config's: ``sim.env``'s default)."""
     return plant.nominal if isinstance(plant, VehiclePlant) else None
 
 
@@ -116,28 +116,9 @@ def _as_arrays(quad: QuadParams, rate_model: str, dtype) -> QuadParams:
     return vehicle_arrays(quad, dtype).replace(rate_model=rate_model)
 
 
-def curriculum_scale(cfg: EnvConfig, progress: jax.Array | None) -> jax.Array | None:
-    """The width of the plant ranges at ``progress`` (the fraction of the training run done):
-    min(1, progress / ``randomization.curriculum``); ``None`` (the full ranges) without a
-    curriculum or a progress."""
-    if progress is None or cfg.randomization.curriculum == 0:
-        return None
-    return jnp.minimum(1.0, jnp.asarray(progress) / cfg.randomization.curriculum)
-
-
-def _narrowed(rng, neutral: float, scale):
-    """The range ``rng`` shrunk towards ``neutral`` to ``scale`` of its width (None: as it is)."""
-    if scale is None:
-        return rng
-    return tuple(neutral + scale * (x - neutral) for x in rng)
-
-
-def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=None, scale=None) -> Plant:
+def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=None) -> Plant:
     """A plant drawn from ``cfg.randomization``'s ranges around ``quad`` (None: the config's
-    vehicle), each uniform; ``key`` is folded with :data:`PLANT_TAG` first.  ``scale`` (the
-    curriculum's, :func:`curriculum_scale`; None: 1) shrinks every range towards the nominal
-    plant without errors: factors towards 1, latency, bias, mean wind and the noise factor
-    towards 0."""
+    vehicle), each uniform; ``key`` is folded with :data:`PLANT_TAG` first."""
     r = cfg.randomization
     dtype = dtype or jnp.zeros(()).dtype
     if r.vehicles:  # the nominal vehicle, drawn; the errors below apply around it
@@ -152,7 +133,7 @@ def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=N
     k = jax.random.split(jax.random.fold_in(key, PLANT_TAG), 10)
 
     def uni(i, rng, shape=(), neutral=1.0):
-        lo, hi = _narrowed(rng, neutral, scale)
+        lo, hi = rng
         return lo + (hi - lo) * jax.random.uniform(k[i], shape, dtype)
 
     rate = uni(4, r.rate_limit)
@@ -166,12 +147,9 @@ def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=N
         rate_max=quad.rate_max * rate,
     )
     lo, hi = latency_steps(cfg)
-    if scale is not None:  # towards the action_delay steps alone
-        extra = delay_steps(cfg)
-        lo, hi = (extra + jnp.round(scale * (x - extra)).astype(jnp.int32) for x in (lo, hi))
     latency = jax.random.randint(k[5], (), lo, hi + 1, jnp.int32)
     if fixed_pos_bias(cfg):
-        bias = jnp.asarray(r.pos_bias, dtype) if scale is None else scale * jnp.asarray(r.pos_bias, dtype)
+        bias = jnp.asarray(r.pos_bias, dtype)
     else:
         bias = uni(8, (-r.pos_bias, r.pos_bias), (3,), 0.0)
     kind, known_part = (VehiclePlant, dict(nominal=known)) if r.vehicles else (Plant, {})

@@ -20,6 +20,7 @@ state stays small.  All generators are pure functions of a PRNG key; ``vmap`` th
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import jax
@@ -158,15 +159,15 @@ _SPIRAL_DEFAULTS = {"gain": 0.0, "rate": 0.0, "climb": 0.0, "phase": 0.0, "time_
 
 def _make(kind, *, n_seg, seg_steps=1, first_step=0, seg_p=None, seg_v=None, seg_a=None, **spiral) -> Track:
     """A :class:`Track` of ``kind``; ``spiral`` sets the spiral fields (else 0, time scale 1)."""
-    f = _float()
-    table = lambda x: jnp.zeros((n_seg, 3), f) if x is None else jnp.asarray(x, f)  # noqa: E731
-    return Track(
-        kind=jnp.asarray(kind, jnp.int32),
-        **{k: jnp.asarray(spiral.get(k, v), f) for k, v in _SPIRAL_DEFAULTS.items()},
-        seg_steps=jnp.asarray(seg_steps, jnp.int32),
-        first_step=jnp.asarray(first_step, jnp.int32),
-        seg=jnp.stack([table(seg_p), table(seg_v), table(seg_a)], -2),
-    )
+    f = jnp.zeros(()).dtype  # the default float (float64 under x64), as _float
+    fields = dict(_SPIRAL_DEFAULTS, **spiral)
+    for name in _SPIRAL_DEFAULTS:
+        fields[name] = jnp.asarray(fields[name], f)
+    tables = []
+    for x in (seg_p, seg_v, seg_a):
+        tables.append(jnp.zeros((n_seg, 3), f) if x is None else jnp.asarray(x, f))
+    return Track(kind=jnp.asarray(kind, jnp.int32), **fields, seg_steps=jnp.asarray(seg_steps, jnp.int32),
+                 first_step=jnp.asarray(first_step, jnp.int32), seg=jnp.stack(tables, -2))  # fmt: skip
 
 
 def table(pos, vel, acc, seg_steps: int = 1) -> Track:
@@ -194,7 +195,7 @@ def _piecewise(track: Track, k: jax.Array, dt: float):
     # than integer floor division (benchmarks/env_throughput.py).
     f = track.seg.dtype
     kf, S = k.astype(f), track.seg_steps.astype(f)
-    jf = jnp.minimum(jnp.floor((kf + 0.5) / S), track.num_segments - 1)
+    jf = jnp.minimum(jnp.floor((kf + 0.5) / S), track.seg.shape[-3] - 1)  # the last segment
     tau = ((kf - jf * S) * dt)[..., None]
     row = track.seg[jf.astype(jnp.int32)]  # (..., 3, 3)
     P, V, A = row[..., 0, :], row[..., 1, :], row[..., 2, :]
@@ -219,9 +220,8 @@ def evaluate(track: Track, k: jax.Array, dt: float, derivatives: bool = True):
     return out if derivatives else out[0]
 
 
-def position(track: Track, k: jax.Array, dt: float) -> jax.Array:
-    """Reference position (..., 3) m at control step(s) ``k``."""
-    return evaluate(track, k, dt, derivatives=False)
+# position(track, k, dt): the reference position (..., 3) m at control step(s) ``k``
+position = functools.partial(evaluate, derivatives=False)
 
 
 def reference(track: Track, dt: float, num_points: int) -> Reference:

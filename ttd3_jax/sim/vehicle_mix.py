@@ -8,7 +8,7 @@ numeric field of :class:`~ttd3_jax.sim.dynamics.QuadParams` geometric (log-linea
 magnitude's interpolation.  The config's vehicle gives the rest: the rate model, gravity and
 thrust units (:func:`flown_as`).  That drawn vehicle is the episode's *nominal* vehicle, known to
 the controller: the action map is its own (hover-centred thrust: a0 = 0 is its hover; rates as
-fractions of its limits; ``sim.action_map``), and the actor observes its :func:`descriptor`.  The
+fractions of its limits; ``sim.env``), and the actor observes its :func:`descriptor`.  The
 randomisation's factors (mass, thrust gain, ...) then apply on top of it, unknown, as they do
 around the config's vehicle.  ``(a, a)`` is vehicle ``a`` alone in the same units: what
 evaluation flies (:func:`pin_vehicle`).

@@ -102,16 +102,6 @@ class TrainConfig:
     # critic targets from n-step returns (not in the paper; FastTD3 uses 3), each cut where its
     # episode ended and bootstrapped through truncation; 1 is TD3's one-step target
     n_step: int = 1
-    # 0: the paper's Q critics.  > 0 (not in the paper): deep advantage updating (Tallec, Blier,
-    # Ollivier 2019), Q = V(s) + δ A(s, a) with A(s, π(s)) = 0 at the env's control step δ; the
-    # step (s) at which hp's per-step γ, learning rates and τ hold (fast_dpg's: 0.01); at δ they
-    # become γ^ρ, lr ρ and 1 − (1 − τ)^ρ, ρ = δ / advantage_dt (dpg.step_hyper)
-    advantage_dt: float = 0.0
-
-    @property
-    def advantage(self) -> bool:
-        """Deep advantage updating's critics (``advantage_dt`` > 0)."""
-        return self.advantage_dt > 0
 
     def __post_init__(self):
         _validate(self)
@@ -160,10 +150,6 @@ def _validate(c: TrainConfig) -> None:
     checks.integer("warmup_transitions", c.warmup_transitions, 0, MAX_TRANSITIONS)
     checks.integer("n_step", c.n_step, 1, 1000)
     checks.boolean("normalize_obs", c.normalize_obs)
-    checks.number("advantage_dt", c.advantage_dt, 0.0, 10.0)
-    if c.advantage_dt > 0 and c.model_horizon > 0:
-        why = "0 with model_horizon > 0 (the model-based actor has no advantage critic)"
-        checks.fail("advantage_dt", why, c.advantage_dt)
     checks.instance("noise", c.noise, NoiseConfig)
     if len(c.hidden) < 1 or not all(checks.is_integer(h) and h >= 1 for h in c.hidden):
         checks.fail("hidden", "one or more layer widths >= 1", c.hidden)

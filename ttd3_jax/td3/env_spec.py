@@ -5,8 +5,7 @@ Brax/MJX tasks.
 An :class:`EnvSpec` is a single-env object with the Brax ``reset`` / ``step`` API whose
 ``info`` carries ``"truncation"`` and ``"terminated"`` (a true terminal state, apart from the
 time limit), its sizes, the nominal episode length (T-TD3's time unit) and
-``evaluate(policy)``, which scores a deterministic ``policy(obs)``.  An env with a
-``curriculum`` resets with the fraction of the training run done (``reset(key, progress=p)``).
+``evaluate(policy)``, which scores a deterministic ``policy(obs)``.
 """
 
 from __future__ import annotations
@@ -23,5 +22,3 @@ class EnvSpec(NamedTuple):
     evaluate: Callable[[Callable], dict]  # policy (obs -> action) -> metrics (pure; jit it)
     differentiable: bool  # whether gradients flow through env.step (model_horizon > 0)
     actor_obs_size: int  # the leading observation entries the actor reads (the critics read all)
-    control_dt: float = 0.0  # s per env step (deep advantage updating's δ); 0: not known
-    curriculum: bool = False  # env.reset(key, progress=...) takes the fraction of the run done

@@ -1,10 +1,9 @@
-"""One vector step with the model-based actor update (``model_horizon`` H > 0; the ``fast``
-preset, not in the paper): the actor learns from the gradient of an H-step rollout's return
-back-propagated through the differentiable simulator (:func:`model_loss`), the rollout's
-transitions go to the buffer, and the twin critics train as in TD3
-(:func:`~ttd3_jax.td3.dpg.critic_update`, which also keeps T-TD3's σ schedule running).
-The actor never reads the critics; every ``policy_delay`` critic updates the targets move
-(:func:`~ttd3_jax.td3.dpg.polyak`).
+"""The actor update through the simulator (``model_horizon`` H > 0; the ``fast`` preset, not
+in the paper): the actor learns from the gradient of an H-step rollout's return
+back-propagated through the differentiable env (:func:`model_loss`).  The rollout's
+transitions go to the buffer, and the twin critics train as in TD3 (they keep T-TD3's σ
+schedule running: :func:`~ttd3_jax.td3.core.update_sigma` reads their minibatch rewards);
+the actor never reads them.  Every ``policy_delay`` critic updates the targets move.
 """
 
 from __future__ import annotations
@@ -12,43 +11,30 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from ttd3_jax.td3 import core
 from ttd3_jax.td3 import networks as nn
 from ttd3_jax.td3.config import Hyper
-from ttd3_jax.td3.dpg import (
-    Finished,
-    Setup,
-    StepMetrics,
-    TrainState,
-    adam_step,
-    critic_update,
-    delay_due,
-    env_step,
-    exploration_std,
-    obs_stats,
-    polyak,
-    store,
-)
+from ttd3_jax.td3.core import Finished, Setup, StepMetrics, TrainState
 
 
-def model_loss(s: Setup, actor, ts: TrainState, hp: Hyper, key: jax.Array):
+def model_loss(actor, s: Setup, ts: TrainState, hp: Hyper, key: jax.Array):
     """``model_horizon`` steps of all envs under the noisy current policy, differentiable in
     ``actor``: returns −mean_envs Σ_{k<H} γ^k r_k (scaled rewards; an episode's return stops
     where it ends), and as aux the env state and running returns after the rollout, its
-    transitions (H, n, ...) and the :class:`~ttd3_jax.td3.dpg.Finished` episodes."""
-    stats, std, n = obs_stats(s, ts), exploration_std(s, ts), s.config.num_envs
+    transitions (H, n, ...) and the :class:`~ttd3_jax.td3.core.Finished` episodes."""
+    stats, std = core.obs_stats(s, ts), core.exploration_std(s, ts)
 
     def body(carry, k):
         state, ep_ret, alive, disc, ret, fin = carry
         k_noise, k_reset = jax.random.split(k)
         pi = nn.policy(s.nets, actor, stats, state.obs)
         a = jnp.clip(pi + std * jax.random.normal(k_noise, pi.shape), -1.0, 1.0)
-        state, tr, ep_ret, f = env_step(s, state, ep_ret, hp=hp, actions=a, key=k_reset, n_tr=ts.n_tr)
+        state, tr, ep_ret, f = core.env_step(s, state, ep_ret, hp=hp, actions=a, key=k_reset)
         ret = ret + disc * alive * tr.reward
         fin = Finished(fin.return_sum + f.return_sum, fin.count + f.count)
-        carry = (state, ep_ret, alive * (1.0 - tr.done), disc * hp.gamma, ret, fin)
-        return carry, jax.lax.stop_gradient(tr)
+        return (state, ep_ret, alive * (1.0 - tr.done), disc * hp.gamma, ret, fin), jax.lax.stop_gradient(tr)
 
-    zero = jnp.zeros(())
+    zero, n = jnp.zeros(()), s.config.num_envs
     carry = (ts.env_state, ts.ep_return, jnp.ones(n), jnp.ones(()), jnp.zeros(n), Finished(zero, zero))
     carry, trs = jax.lax.scan(body, carry, jax.random.split(key, s.config.model_horizon))
     state, ep_ret, _, _, ret, fin = carry
@@ -66,29 +52,31 @@ def clip_by_global_norm(g, max_norm):
 def model_actor_update(s: Setup, ts: TrainState, hp: Hyper, key: jax.Array):
     """One actor update from a differentiable rollout; its transitions go to the buffer and
     the envs continue from where it ended.  Returns ``(ts, loss, finished)``."""
-    grad = jax.value_and_grad(lambda a: model_loss(s, a, ts, hp, key), has_aux=True)
-    (loss, ((env_state, ep_return), trs, fin)), g = grad(ts.actor)
+    grad = jax.value_and_grad(model_loss, has_aux=True)
+    (loss, ((env_state, ep_return), trs, fin)), g = grad(ts.actor, s, ts, hp, key)
     g = clip_by_global_norm(g, hp.model_grad_clip)
-    actor, actor_opt = adam_step(s, ts.actor, ts.actor_opt, g, hp.lr_actor)
+    actor, actor_opt = core.adam_step(s, ts.actor, ts.actor_opt, g, hp.lr_actor)
     ts = ts.replace(actor=actor, actor_opt=actor_opt, env_state=env_state, ep_return=ep_return)
-    ts = jax.lax.scan(lambda t, tr: (store(s, t, tr), None), ts, trs)[0]
+    ts = jax.lax.scan(lambda t, tr: (core.store(s, t, tr), None), ts, trs)[0]
     return ts, loss, fin
 
 
-def update(s: Setup, ts: TrainState, hp: Hyper, key: jax.Array, j: jax.Array):
+def update(s: Setup, hp: Hyper, ts: TrainState, x):
     """One critic step, the σ update and, every d-th update, the target step (the actor
     learns from the rollout, not here)."""
-    ts, _, c_loss, q_mean = critic_update(s, ts, hp, key)
-    ts = jax.lax.cond(delay_due(s.config, ts, j), lambda ts: polyak(ts, hp), lambda ts: ts, ts)
+    key, j = x
+    ts, _, rewards, c_loss, q_mean = core.critic_update(s, ts, hp, key)
+    ts = core.update_sigma(s, ts, hp, rewards)
+    ts = jax.lax.cond(core.delay_due(s.config, ts, j), lambda ts: core.polyak(ts, hp), lambda ts: ts, ts)
     return ts, (c_loss, q_mean)
 
 
-def vector_step(s: Setup, ts: TrainState, hp: Hyper):
+def vector_step(s: Setup, hp: Hyper, ts: TrainState, _=None):
     """An H-step rollout that updates the actor, then G critic updates; returns the state and
     ``(StepMetrics, Finished)`` (the actor loss is the rollout's)."""
     c = s.config
     key, k_noise, _, k_upd = jax.random.split(ts.key, 4)  # as dpg.vector_step splits it
     ts, m_loss, finished = model_actor_update(s, ts.replace(key=key), hp, k_noise)
-    keys = (jax.random.split(k_upd, c.updates_per_step), jnp.arange(c.updates_per_step))
-    ts, (c_loss, q) = jax.lax.scan(lambda t, x: update(s, t, hp, *x), ts, keys)
+    xs = (jax.random.split(k_upd, c.updates_per_step), jnp.arange(c.updates_per_step))
+    ts, (c_loss, q) = jax.lax.scan(lambda t, x: update(s, hp, t, x), ts, xs)
     return ts, (StepMetrics(jnp.mean(c_loss), m_loss, jnp.mean(q)), finished)

@@ -96,47 +96,21 @@ class ResidualMLP(nn.Module):
         return nn.Dense(self.out)(nn.LayerNorm()(x))
 
 
-class AdvantageCritic(nn.Module):
-    """Deep advantage updating's critic (Tallec, Blier, Ollivier 2019): a value net V(obs) and
-    an advantage net Ā(obs, action), each a ``body`` of the critic architecture; Q is put
-    together from them by :func:`twin_q_adv`."""
-
-    body: nn.Module  # the architecture of both nets (one output)
-
-    def setup(self):
-        self.v_net, self.a_net = self.body.clone(), self.body.clone()
-
-    def __call__(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
-        return self.value(obs), self.advantage(obs, action)
-
-    def value(self, obs: jax.Array) -> jax.Array:
-        return self.v_net(obs)[..., 0]
-
-    def advantage(self, obs: jax.Array, action: jax.Array) -> jax.Array:
-        """Ā(obs, action), not yet normalised (:func:`twin_q_adv` subtracts Ā(obs, π(obs)))."""
-        return self.a_net(jnp.concatenate([obs, action], -1))[..., 0]
-
-
 class Networks(NamedTuple):
     actor: MLP  # obs (..., n_obs) -> action (..., n_act) in [-1, 1]
-    # [obs, action] (..., n_obs + n_act) -> Q (..., 1): MLP or ResidualMLP; AdvantageCritic if dt > 0
-    critic: nn.Module
-    dt: float = 0.0  # > 0: the control step δ (s) of deep advantage updating, Q = V + δ A
+    critic: nn.Module  # [obs, action] (..., n_obs + n_act) -> Q (..., 1): MLP or ResidualMLP
 
 
 CRITIC_ARCHS = ("mlp", "residual")
 
 
 def make_networks(action_size: int, hidden: Sequence[int] = (256, 256), critic_arch: str = "mlp",
-                  actor_obs_size: int | None = None, advantage_dt: float = 0.0) -> Networks:  # fmt: skip
+                  actor_obs_size: int | None = None) -> Networks:  # fmt: skip
     """The actor (reading the first ``actor_obs_size`` observation entries, or all) and the
-    critic architecture ``critic_arch`` (one of ``CRITIC_ARCHS``); ``advantage_dt`` > 0: an
-    :class:`AdvantageCritic` of that architecture for the control step δ = ``advantage_dt`` s."""
+    critic architecture ``critic_arch`` (one of ``CRITIC_ARCHS``)."""
     critic = ResidualMLP(tuple(hidden), 1) if critic_arch == "residual" else MLP(tuple(hidden), 1)
-    if advantage_dt > 0:
-        critic = AdvantageCritic(critic)
     actor = MLP(tuple(hidden), action_size, squash=True, in_size=actor_obs_size)
-    return Networks(actor=actor, critic=critic, dt=advantage_dt)
+    return Networks(actor=actor, critic=critic)
 
 
 def init_params(nets: Networks, key: jax.Array, obs_size: int, action_size: int):
@@ -145,11 +119,9 @@ def init_params(nets: Networks, key: jax.Array, obs_size: int, action_size: int)
     obs = jnp.zeros((1, obs_size))
     act = jnp.zeros((1, action_size))
     actor = nets.actor.init(k_actor, obs)
-    if nets.dt > 0:
-        init = lambda k: nets.critic.init(k, obs, act)  # noqa: E731
-    else:
-        init = lambda k: nets.critic.init(k, jnp.concatenate([obs, act], -1))  # noqa: E731
-    critic = jax.vmap(init)(jax.random.split(k_critic, 2))
+    critic = jax.vmap(lambda k: nets.critic.init(k, jnp.concatenate([obs, act], -1)))(
+        jax.random.split(k_critic, 2)
+    )
     return actor, critic
 
 
@@ -163,26 +135,3 @@ def twin_q(nets: Networks, critic_params, stats: ObsStats | None, obs: jax.Array
     """Both critics' values, shape (2, ...), for raw obs (..., n_obs) and action (..., n_act)."""
     x = jnp.concatenate([normalize(stats, obs), action], -1)
     return jax.vmap(lambda p: nets.critic.apply(p, x)[..., 0])(critic_params)
-
-
-def twin_v(nets: Networks, critic_params, stats: ObsStats | None, obs: jax.Array) -> jax.Array:
-    """Both advantage critics' values V_i(obs), shape (2, ...) (``nets.dt`` > 0)."""
-    x = normalize(stats, obs)
-    return jax.vmap(lambda p: nets.critic.apply(p, x, method=AdvantageCritic.value))(critic_params)
-
-
-def twin_adv(nets: Networks, critic_params, stats: ObsStats | None, obs: jax.Array,
-             action: jax.Array) -> jax.Array:  # fmt: skip
-    """Both critics' unnormalised advantages Ā_i(obs, action), shape (2, ...)."""
-    x = normalize(stats, obs)
-    adv = lambda p: nets.critic.apply(p, x, action, method=AdvantageCritic.advantage)  # noqa: E731
-    return jax.vmap(adv)(critic_params)
-
-
-def twin_q_adv(nets: Networks, critic_params, stats: ObsStats | None, obs: jax.Array, action: jax.Array,
-               ref_action: jax.Array) -> jax.Array:  # fmt: skip
-    """Deep advantage updating's Q_i = V_i(s) + δ (Ā_i(s, a) − Ā_i(s, π(s))), shape (2, ...), with
-    ``ref_action`` = π(s): the advantage of the policy's own action is 0, so Q_i(s, π(s)) = V_i(s)."""
-    adv = twin_adv(nets, critic_params, stats, obs, action)
-    adv = adv - twin_adv(nets, critic_params, stats, obs, ref_action)
-    return twin_v(nets, critic_params, stats, obs) + nets.dt * adv

@@ -1,15 +1,17 @@
 """T-TD3 / TD3 trainer: parallel envs, device replay buffer and updates in one ``lax.scan``.
 
-:func:`make_trainer` picks the step once: :func:`~ttd3_jax.td3.dpg.vector_step`, the paper's
-actor update through the critic (∂Q₁/∂a), or :func:`~ttd3_jax.td3.model_based.vector_step`,
-the actor update through the simulator (``fast``, a rollout horizon H > 0).  Around it, pure
-functions of the static :class:`~ttd3_jax.td3.dpg.Setup`: :func:`init` (networks,
-optimisers, envs, random warm-up), :func:`epoch` (a scan of vector steps), :func:`evaluate`
-and :func:`train` (the whole run fused).  ``vmap`` them over seeds and hyperparameters for sweeps.
+:func:`make_trainer` picks the actor update once: :func:`~ttd3_jax.td3.dpg.vector_step`,
+the paper's update through the critic (∂Q₁/∂a), or
+:func:`~ttd3_jax.td3.model_based.vector_step`, the update through the simulator (``fast``,
+a rollout horizon H > 0).  Around it, pure functions of the static
+:class:`~ttd3_jax.td3.core.Setup`: :func:`init` (networks, optimisers, envs, random warm-up),
+:func:`epoch` (a scan of vector steps), :func:`evaluate` and :func:`train` (the whole run
+fused).  ``vmap`` them over seeds and hyperparameters for sweeps.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -19,23 +21,20 @@ import optax
 
 from ttd3_jax import checks
 from ttd3_jax.td3 import buffer as rb
-from ttd3_jax.td3 import dpg, model_based
+from ttd3_jax.td3 import core, dpg, model_based
 from ttd3_jax.td3 import networks as nn
 from ttd3_jax.td3 import noise as nz
 from ttd3_jax.td3.config import Hyper, TrainConfig
-from ttd3_jax.td3.dpg import Setup, TrainState, collect, obs_stats, reset_envs, with_lr
+from ttd3_jax.td3.core import Setup, TrainState
 from ttd3_jax.td3.env_spec import EnvSpec
 
-StepFn = Callable[[Setup, TrainState, Hyper], tuple]  # (s, ts, hp) -> (ts, (StepMetrics, Finished))
+StepFn = Callable[[Setup, Hyper, TrainState, None], tuple]  # (s, hp, ts, _) -> (ts, (StepMetrics, Finished))
 
 
 def make_setup(c: TrainConfig, env: EnvSpec) -> Setup:
     adam = optax.inject_hyperparams(optax.adam)(learning_rate=0.0)
     actor_in = env.actor_obs_size if env.actor_obs_size != env.obs_size else None
-    if c.advantage and not env.control_dt > 0:
-        raise ValueError("advantage_dt > 0 needs an env whose EnvSpec.control_dt (its step in s) is known")
-    dt = env.control_dt if c.advantage else 0.0
-    return Setup(c, env, nn.make_networks(env.action_size, c.hidden, c.critic_arch, actor_in, dt), adam)
+    return Setup(c, env, nn.make_networks(env.action_size, c.hidden, c.critic_arch, actor_in), adam)
 
 
 def act(s: Setup, actor, stats: nn.ObsStats | None, obs: jax.Array) -> jax.Array:
@@ -51,10 +50,10 @@ def init(s: Setup, key: jax.Array, hp: Hyper) -> TrainState:
     zero = jnp.zeros((), jnp.int32)
     ts = TrainState(
         actor=actor, critic=critic, target_actor=actor, target_critic=critic,
-        actor_opt=with_lr(s.adam.init(actor), hp.lr_actor),
-        critic_opt=with_lr(s.adam.init(critic), hp.lr_critic),
+        actor_opt=core.with_lr(s.adam.init(actor), hp.lr_actor),
+        critic_opt=core.with_lr(s.adam.init(critic), hp.lr_critic),
         buffer=rb.init(c.buffer_capacity, env.obs_size, env.action_size),
-        env_state=reset_envs(s, k_env, zero), ep_return=jnp.zeros(n),
+        env_state=core.reset_envs(s, k_env), ep_return=jnp.zeros(n),
         obs_stats=nn.init_obs_stats(env.obs_size), noise=nz.init(hp, c.time_attenuating), key=k_run,
         n_tr=zero, n_upd=zero,
     )  # fmt: skip
@@ -62,7 +61,7 @@ def init(s: Setup, key: jax.Array, hp: Hyper) -> TrainState:
     def warm(ts, k):  # uniform-random actions before learning
         k_a, k_r = jax.random.split(k)
         a = jax.random.uniform(k_a, (n, env.action_size), minval=-1.0, maxval=1.0)
-        return collect(s, ts, hp, a, k_r)[0], None
+        return core.collect(s, ts, hp, a, k_r)[0], None
 
     if c.normalize_obs:
         ts = ts.replace(obs_stats=nn.update_obs_stats(ts.obs_stats, ts.env_state.obs))
@@ -72,7 +71,9 @@ def init(s: Setup, key: jax.Array, hp: Hyper) -> TrainState:
 def with_actor(s: Setup, ts: TrainState, actor, hp: Hyper) -> TrainState:
     """``ts`` with ``actor`` as its policy (e.g. a behaviour-cloned one): the target actor set
     to it and a fresh Adam state for it."""
-    return ts.replace(actor=actor, target_actor=actor, actor_opt=with_lr(s.adam.init(actor), hp.lr_actor))
+    return ts.replace(
+        actor=actor, target_actor=actor, actor_opt=core.with_lr(s.adam.init(actor), hp.lr_actor)
+    )
 
 
 def initial_actor(s: Setup, key: jax.Array) -> dict:
@@ -89,8 +90,7 @@ def seed_keys(seed: int, num_seeds: int) -> jax.Array:
 
 def epoch(s: Setup, step: StepFn, ts: TrainState, hp: Hyper):
     """``steps_per_epoch`` vector steps; returns the state and the epoch's mean metrics."""
-    c = s.config
-    ts, (out, fin) = jax.lax.scan(lambda t, _: step(s, t, hp), ts, None, length=c.steps_per_epoch)
+    ts, (out, fin) = jax.lax.scan(functools.partial(step, s, hp), ts, None, length=s.config.steps_per_epoch)
     m = {k: jnp.nanmean(v) for k, v in out._asdict().items()}
     n_ep = jnp.sum(fin.count)
     m.update(
@@ -104,7 +104,7 @@ def epoch(s: Setup, step: StepFn, ts: TrainState, hp: Hyper):
 
 def evaluate(s: Setup, ts: TrainState) -> dict:
     """The env's evaluation of the deterministic policy (separate envs, fixed keys)."""
-    stats = obs_stats(s, ts)
+    stats = core.obs_stats(s, ts)
     return s.env.evaluate(lambda obs: act(s, ts.actor, stats, obs))
 
 
@@ -120,7 +120,7 @@ def train(s: Setup, step: StepFn, key: jax.Array, hp: Hyper):
 
 
 class Trainer(NamedTuple):
-    """The trainer's functions bound to one :class:`~ttd3_jax.td3.dpg.Setup` and step;
+    """The trainer's functions bound to one :class:`~ttd3_jax.td3.core.Setup` and step;
     ``vmap`` them over seeds / hyperparameters."""
 
     setup: Setup
@@ -146,16 +146,11 @@ def make_trainer(c: TrainConfig, env: EnvSpec) -> Trainer:
     """The pure training functions for config ``c`` on ``env``; the actor update is chosen
     here, once, and so is checked (the one place) that the model-based one has a
     differentiable env."""
-    horizon = c.model_horizon
-    if horizon > 0 and not env.differentiable:
+    if c.model_horizon > 0 and not env.differentiable:
         why = "0 for this env: gradients do not flow through its step (> 0 back-propagates through it)"
-        checks.fail("model_horizon", why, horizon)
-    step = model_based.vector_step if horizon > 0 else dpg.vector_step
+        checks.fail("model_horizon", why, c.model_horizon)
+    step = model_based.vector_step if c.model_horizon > 0 else dpg.vector_step
     s = make_setup(c, env)
-    return Trainer(
-        setup=s,
-        init=lambda key, hp: init(s, key, hp),
-        epoch=lambda ts, hp: epoch(s, step, ts, hp),
-        evaluate=lambda ts: evaluate(s, ts),
-        train=lambda key, hp: train(s, step, key, hp),
-    )
+    p = functools.partial
+    return Trainer(setup=s, init=p(init, s), epoch=p(epoch, s, step), evaluate=p(evaluate, s),
+                   train=p(train, s, step))  # fmt: skip
