@@ -1,5 +1,5 @@
 """How long an epoch waits for its checkpoint: a synchronous save (written before the call
-returns) against the trainer's background save (``ttd3_jax.checkpoint.save(..., wait=False)``
+returns) against the trainer's background save (``ttd3_jax.run.checkpoint.save(..., wait=False)``
 on an asynchronous manager: the state is copied to host memory, then written while the next
 epoch trains).  The state is the ``fast`` preset's whole train state (replay buffer
 included), saved alternately both ways into a temporary directory.
@@ -26,9 +26,9 @@ import jax
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _peers  # noqa: E402
 
-from ttd3_jax import checkpoint as ckpt  # noqa: E402
-from ttd3_jax import spec as sp  # noqa: E402
-from ttd3_jax.sharding import runner_fns  # noqa: E402
+from ttd3_jax.run import checkpoint as ckpt  # noqa: E402
+from ttd3_jax.run import spec as sp  # noqa: E402
+from ttd3_jax.run.sharding import runner_fns  # noqa: E402
 from ttd3_jax.td3.trainer import seed_keys  # noqa: E402
 
 

@@ -52,10 +52,9 @@ import jax
 import jax.numpy as jnp
 
 from ttd3_jax.sim import trajectories as tr
-from ttd3_jax.sim.action_map import action_to_control
 from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.dynamics import rk4_step
-from ttd3_jax.sim.env import TrackingEnv, _zero_non_finite, ou_wind_step
+from ttd3_jax.sim.env import TrackingEnv, _zero_non_finite, action_to_control, ou_wind_step
 
 
 def _stand_in_position(track, k, dt):

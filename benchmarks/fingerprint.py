@@ -47,11 +47,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttd3_jax import sharding
-from ttd3_jax.report import device_description
+from ttd3_jax.run import sharding
+from ttd3_jax.run.report import device_description
+from ttd3_jax.run.spec import preset, trainer_for
 from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.env import TrackingEnv
-from ttd3_jax.spec import preset, trainer_for
 from ttd3_jax.td3.trainer import seed_keys
 
 

@@ -170,8 +170,8 @@ def build_ours(env: str, hidden: int, steps: int, num_envs: int = 1, utd: int = 
 
     import jax
 
-    from ttd3_jax import envs
-    from ttd3_jax import spec as sp
+    from ttd3_jax.run import spec as sp
+    from ttd3_jax.run import tasks
     from ttd3_jax.sim.config import make_config
     from ttd3_jax.td3.config import Hyper, TrainConfig
     from ttd3_jax.td3.env_spec import EnvSpec
@@ -203,7 +203,7 @@ def build_ours(env: str, hidden: int, steps: int, num_envs: int = 1, utd: int = 
                 pendulum_v1(), 3, 1, 200, evaluate=lambda policy: {}, differentiable=False, actor_obs_size=3
             )
         else:  # the paper preset's env
-            spec = envs.quadrotor(make_config("paper"))
+            spec = tasks.quadrotor(make_config("paper"))
         tr = make_trainer(c, spec)
     ts = jax.block_until_ready(jax.jit(tr.init)(jax.random.PRNGKey(0), hp))
     setup_s = time.perf_counter() - t0

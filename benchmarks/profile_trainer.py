@@ -33,7 +33,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import trainer_throughput as tt  # noqa: E402
 from profile_env import kernel_contents  # noqa: E402
 
-from ttd3_jax import spec as sp  # noqa: E402
+from ttd3_jax.run import spec as sp  # noqa: E402
 from ttd3_jax.td3.trainer import seed_keys  # noqa: E402
 
 

@@ -21,8 +21,8 @@ import jax
 import numpy as np
 from reliability_processes import full_disk, sigkill_then_resume  # noqa: E402  (beside this script)
 
-from ttd3_jax import checkpoint as ckpt
-from ttd3_jax import run_state
+from ttd3_jax.run import checkpoint as ckpt
+from ttd3_jax.run import status
 
 
 def state(seed: int) -> dict:
@@ -88,13 +88,13 @@ def corrupt_best(trials: int, rng: np.random.Generator) -> dict:
 
 def two_writers_and_a_reader() -> dict:
     with tempfile.TemporaryDirectory() as run_dir:
-        run_state.acquire(run_dir)
+        status.acquire(run_dir)
         try:
-            run_state.acquire(run_dir)
+            status.acquire(run_dir)
             second = "ran beside the first"
-        except run_state.RunLocked:
+        except status.RunLocked:
             second = "refused"
-        run_state.release(run_dir)
+        status.release(run_dir)
         m = ckpt.manager(run_dir)
         ckpt.save(m, 1, state(1))
         m.close()

@@ -52,7 +52,7 @@ import _peers
 import jax
 import jax.numpy as jnp
 
-from ttd3_jax import spec as sp
+from ttd3_jax.run import spec as sp
 from ttd3_jax.td3.trainer import seed_keys
 
 PEAK_N = 2048  # the peak matmul: (N, N) @ (N, N) float32

@@ -33,10 +33,10 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from ttd3_jax import spec as sp
 from ttd3_jax.control.closed_loop import evaluate_on_tracks, policy_controller, test_tracks
 from ttd3_jax.control.geometric import geometric_controller
 from ttd3_jax.control.paper import PAPER_TTD3
+from ttd3_jax.run import spec as sp
 from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.env import TrackingEnv
 from ttd3_jax.td3 import networks

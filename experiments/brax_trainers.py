@@ -3,7 +3,7 @@
 Trains ``brax.training.agents.ppo.train`` (``--algo sac``: ``sac.train``) on the env of the
 ``fast`` preset (``practical``: 10 ms actions, 50 ms look-ahead, track-frame observation,
 hover-centred thrust; training-track mixture, OU wind 0.2 m/s²; 300 control steps per
-episode), with ``ttd3_jax.brax_compat.install()`` so that Brax 0.14 runs on JAX 0.10. The
+episode), with ``ttd3_jax.interop.brax_compat.install()`` so that Brax 0.14 runs on JAX 0.10. The
 deterministic policy (tanh of the Gaussian's mean) then becomes a controller through
 ``control.closed_loop.policy_controller`` and is evaluated as ``python -m ttd3_jax.evaluate``
 evaluates one: Spiral-RT and LOS-RT seed 0 under the paper's protocol (3000 physics steps from
@@ -34,9 +34,10 @@ import jax
 from brax.training.agents.ppo import train as ppo
 from brax.training.agents.sac import train as sac
 
-from ttd3_jax import brax_compat, report
 from ttd3_jax.control.closed_loop import policy_controller
 from ttd3_jax.control.evaluator import Evaluator, evaluate_controller, los_statistics
+from ttd3_jax.interop import brax_compat
+from ttd3_jax.run import report
 from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.env import TrackingEnv
 

@@ -26,8 +26,8 @@ import numpy as np
 
 from ttd3_jax.control import generalization as gen
 from ttd3_jax.control.evaluator import Evaluator, controller_build, evaluate_tracks
-from ttd3_jax.report import device_description, json_safe, plot_traces
-from ttd3_jax.runs import load_run
+from ttd3_jax.run.report import device_description, json_safe, plot_traces
+from ttd3_jax.run.rundir import load_run
 from ttd3_jax.sim.config import EVAL_CRASH_M, make_config
 from ttd3_jax.sim.env import TrackingEnv
 

@@ -23,13 +23,13 @@ import statistics
 import sys
 import time
 
-from ttd3_jax import spec as sp
-from ttd3_jax.console import show_messages
+from ttd3_jax.cli.console import show_messages
 from ttd3_jax.control.paper import PAPER_TTD3
-from ttd3_jax.report import device_description
-from ttd3_jax.runner import run
-from ttd3_jax.runs import load_spec as runs_load_spec
-from ttd3_jax.runs import read_metrics
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.loop import run
+from ttd3_jax.run.report import device_description
+from ttd3_jax.run.rundir import load_spec as runs_load_spec
+from ttd3_jax.run.rundir import read_metrics
 
 SEEDS = 3
 

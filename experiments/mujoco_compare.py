@@ -60,7 +60,7 @@ def task_config(task: str, algo: str, a: argparse.Namespace):
     """The RunSpec of one task and algorithm (the ``mujoco`` preset, resized)."""
     import dataclasses
 
-    from ttd3_jax import spec as sp
+    from ttd3_jax.run import spec as sp
 
     if a.eval_every % a.num_envs:
         raise ValueError(f"--eval-every ({a.eval_every}) must be a multiple of --num-envs ({a.num_envs})")
@@ -93,8 +93,8 @@ def run_dir_of(out: str, task: str, algo: str) -> str | None:
 
 def run_one(task: str, algo: str, a: argparse.Namespace) -> None:
     """Train one task/algorithm (all seeds in one program), resuming if it was interrupted."""
-    from ttd3_jax.console import show_messages
-    from ttd3_jax.runner import run
+    from ttd3_jax.cli.console import show_messages
+    from ttd3_jax.run.loop import run
 
     show_messages()  # the runner's log, as plain lines
     c = task_config(task, algo, a)
@@ -120,7 +120,7 @@ def run_one(task: str, algo: str, a: argparse.Namespace) -> None:
 
 def collect_evals(out: str) -> list[dict]:
     """Rows (task, algo, seed, step, eval_return) from every run directory under ``out``."""
-    from ttd3_jax.runs import read_metrics
+    from ttd3_jax.run.rundir import read_metrics
 
     rows = []
     for task in TASKS:
@@ -353,7 +353,7 @@ def budgets(out: str) -> list[dict]:
     """Per task and algorithm, the budget its run was trained with (from its config.json),
     and whether that is the paper's protocol (spec §2.7: 1M steps, 1 env, 1 update per
     step, 25k warm-up, evaluation every 5000 steps over 10 episodes, 3 seeds)."""
-    from ttd3_jax.runs import load_spec
+    from ttd3_jax.run.rundir import load_spec
 
     rows = []
     for task in TASKS:
@@ -540,7 +540,7 @@ def main(argv: list[str] | None = None) -> int:
         for t, al in jobs:  # every config error before anything is compiled
             task_config(t, al, a)
         os.makedirs(a.out, exist_ok=True)
-        from ttd3_jax.cache import use_compile_cache
+        from ttd3_jax.run.cache import use_compile_cache
 
         use_compile_cache(a.compile_cache)
         if a.parallel > 1 and len(jobs) > 1:

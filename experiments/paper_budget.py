@@ -22,8 +22,8 @@ import sys
 
 import numpy as np
 
-from ttd3_jax import runs
 from ttd3_jax.control.paper import PAPER_TTD3
+from ttd3_jax.run import rundir
 
 OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "results", "paper_budget")
 NMPC_SOURCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "results", "paper_tables.json")
@@ -50,7 +50,7 @@ def selected_epochs(run_dir: str, metrics: list[dict]) -> dict[int, dict]:
             return {int(s["seed"]): s for s in recorded}
     out = {}
     for r in metrics:  # in epoch order, as the trainer met them
-        if runs.improves_selection(out, int(r["seed"]), r["val_tracking_error"]):
+        if rundir.improves_selection(out, int(r["seed"]), r["val_tracking_error"]):
             out[int(r["seed"])] = dict(r, epoch=int(r["epoch"]))
     return out
 
@@ -67,8 +67,8 @@ def episode_lengths(rows: list[dict], warmup: int) -> list[float]:
 
 def run_rows(run_dir: str) -> list[dict]:
     """One row per seed: its curve, last evaluation, selected policy, budget and state."""
-    spec = runs.load_spec(run_dir)
-    metrics = runs.read_metrics(run_dir)
+    spec = rundir.load_spec(run_dir)
+    metrics = rundir.read_metrics(run_dir)
     finished = os.path.exists(os.path.join(run_dir, "eval.json"))
     selected = selected_epochs(run_dir, metrics)
     out = []

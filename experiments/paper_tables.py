@@ -36,14 +36,14 @@ import time
 import jax
 import numpy as np
 
-from ttd3_jax import runner
-from ttd3_jax import spec as sp
-from ttd3_jax.console import show_messages
+from ttd3_jax.cli.console import show_messages
 from ttd3_jax.control.closed_loop import energy_paper_map, test_tracks, to_paper_map
 from ttd3_jax.control.evaluator import Evaluator, Trace, controller_build, index, summarize
 from ttd3_jax.control.paper import PAPER, PAPER_TTD3
-from ttd3_jax.report import device_description, json_safe, plot_traces
-from ttd3_jax.runs import load_run
+from ttd3_jax.run import loop
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.report import device_description, json_safe, plot_traces
+from ttd3_jax.run.rundir import load_run
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import PRESETS, EnvConfig, make_config
 from ttd3_jax.sim.env import TrackingEnv
@@ -75,7 +75,7 @@ def train_command(algo: str, preset: str, overrides: dict, out: str) -> str:
 def train(algo: str, preset: str, overrides: dict, runs_dir: str) -> tuple[str, float]:
     spec = sp.preset(preset, algo=algo, **overrides)
     t0 = time.perf_counter()
-    summary = runner.run(spec, out=runs_dir, verbose=True)
+    summary = loop.run(spec, out=runs_dir, verbose=True)
     return summary["run_dir"], time.perf_counter() - t0
 
 

@@ -27,11 +27,11 @@ import shlex
 import sys
 import time
 
-from ttd3_jax import runs
-from ttd3_jax.cli_checks import writable_dir
+from ttd3_jax.checks import writable_dir
 from ttd3_jax.control import robustness as rob
 from ttd3_jax.control.evaluator import controller_build
-from ttd3_jax.report import _pyplot, device_description, json_safe
+from ttd3_jax.run import rundir
+from ttd3_jax.run.report import _pyplot, device_description, json_safe
 from ttd3_jax.sim.config import LATENCY_MAX_S, EnvConfig
 
 CONTROLLERS = ("policy", "nmpc")
@@ -86,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def check_args(ap: argparse.ArgumentParser, args) -> tuple[runs.LoadedRun, dict]:
+def check_args(ap: argparse.ArgumentParser, args) -> tuple[rundir.LoadedRun, dict]:
     """Refuse bad flags with one line (exit 2) before anything compiles; returns the run and
     ``{panel: {point: EnvConfig}}``."""
     if args.seeds < 1:
@@ -115,10 +115,10 @@ def check_args(ap: argparse.ArgumentParser, args) -> tuple[runs.LoadedRun, dict]
                 ap.error(f"{flag} points must be in {within}, got {x:g}")
     try:
         writable_dir("--out", args.out)
-        args.run_dir, note = runs.find_run(args.run_dir)
+        args.run_dir, note = rundir.find_run(args.run_dir)
         if note:
             print(note)
-        run = runs.load_run(args.run_dir, best=not args.last)
+        run = rundir.load_run(args.run_dir, best=not args.last)
         nominal = run.env_config.for_eval("los_rt")
     except (FileNotFoundError, ValueError) as e:
         ap.error(str(e).splitlines()[0])

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ttd3_jax.control.closed_loop import closed_loop, hover_controller, metrics, policy_controller
-from ttd3_jax.runs import load_train_state
+from ttd3_jax.run.rundir import load_train_state
 from ttd3_jax.sim.env import TrackingEnv, hover_action
 from ttd3_jax.td3 import networks
 from ttd3_jax.td3.networks import twin_q

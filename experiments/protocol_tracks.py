@@ -30,7 +30,7 @@ import sys
 import jax
 import numpy as np
 
-from ttd3_jax import spec as sp
+from ttd3_jax.run import spec as sp
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import PREVIEW_MAX_S, make_config
 from ttd3_jax.sim.env import TrackingEnv, num_validation_tracks, validation_tracks

@@ -39,9 +39,7 @@ import shlex
 import sys
 import time
 
-from ttd3_jax import runs
-from ttd3_jax import spec as sp
-from ttd3_jax.cli_checks import writable_dir
+from ttd3_jax.checks import writable_dir
 from ttd3_jax.control import generalization as gen
 from ttd3_jax.control import robustness as rob
 from ttd3_jax.control.evaluator import (
@@ -52,7 +50,9 @@ from ttd3_jax.control.evaluator import (
     los_statistics,
 )
 from ttd3_jax.control.paper import PAPER
-from ttd3_jax.report import device_description, json_safe
+from ttd3_jax.run import rundir
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.report import device_description, json_safe
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import EVAL_CRASH_M, FIELD_GROUP, make_config
 from ttd3_jax.sim.env import TrackingEnv
@@ -239,19 +239,19 @@ def robust_differences(spec: sp.RunSpec) -> list[str]:
     return out
 
 
-def load(ap: argparse.ArgumentParser, flag: str, path: str) -> tuple[str, runs.LoadedRun]:
+def load(ap: argparse.ArgumentParser, flag: str, path: str) -> tuple[str, rundir.LoadedRun]:
     try:
-        path, note = runs.find_run(path)
+        path, note = rundir.find_run(path)
         if note:
             print(note)
-        return path, runs.load_run(path, best=True)
+        return path, rundir.load_run(path, best=True)
     except (FileNotFoundError, ValueError) as e:
         ap.error(f"{flag} {path!r}: {str(e).splitlines()[0]}")
 
 
 def check_args(
     ap: argparse.ArgumentParser, args
-) -> tuple[runs.LoadedRun, runs.LoadedRun | None, dict | None]:
+) -> tuple[rundir.LoadedRun, rundir.LoadedRun | None, dict | None]:
     """Refuse bad input with one line (exit 2) before anything compiles; returns the runs and
     the saved NMPC robustness (or ``None``: to compute)."""
     if args.robustness_seeds < 1:
@@ -275,7 +275,7 @@ def check_args(
 # --------------------------------------------------------------------------- evaluation
 
 
-def evaluate_policies(label: str, run: runs.LoadedRun, seeds: tuple) -> dict:
+def evaluate_policies(label: str, run: rundir.LoadedRun, seeds: tuple) -> dict:
     """``{f"{label} seed {s}": {"paper", "suite", "robustness"}}`` for each seed of ``run``:
     one evaluator per config, shared by the seeds (their weights are an argument)."""
     cfg = run.env_config
@@ -392,7 +392,7 @@ def table(table_rows: list[dict], labels: list[str]) -> list[str]:
     return lines
 
 
-def run_note(flag: str, path: str, run: runs.LoadedRun, robust: bool) -> str:
+def run_note(flag: str, path: str, run: rundir.LoadedRun, robust: bool) -> str:
     name = os.path.basename(os.path.normpath(path))
     seeds = [s for s, _ in run.thetas]
     text = (f"{flag}: `{name}` ({run.spec.algo}, seeds {seeds}, epochs selected on the validation tracks "

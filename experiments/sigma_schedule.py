@@ -23,8 +23,8 @@ import os
 import jax
 import numpy as np
 
-from ttd3_jax import spec as sp
-from ttd3_jax.runs import load_train_state, read_metrics
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.rundir import load_train_state, read_metrics
 from ttd3_jax.td3.trainer import seed_keys
 
 READINGS = [(d, t) for d in ("sum", "mean") for t in ("episode", "env_step", "update")]

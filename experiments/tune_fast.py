@@ -21,10 +21,10 @@ import argparse
 import dataclasses
 import statistics
 
-from ttd3_jax import spec as sp
-from ttd3_jax.console import show_messages
-from ttd3_jax.runner import run
-from ttd3_jax.runs import read_metrics
+from ttd3_jax.cli.console import show_messages
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.loop import run
+from ttd3_jax.run.rundir import read_metrics
 from ttd3_jax.sim.trajectories import TrackConfig
 
 # name: (EnvConfig changes, TrainConfig changes, Hyper changes)

@@ -18,10 +18,10 @@ from jax.sharding import PartitionSpec as P
 sys.path.insert(0, os.path.dirname(__file__))
 from tiny import tiny  # noqa: E402
 
-from ttd3_jax import spec as sp  # noqa: E402
-from ttd3_jax.runner import run  # noqa: E402
-from ttd3_jax.runs import read_metrics  # noqa: E402
-from ttd3_jax.sharding import ENV, SWEEP, make_mesh, runner_fns, seed_env_mesh, shard_vmapped  # noqa: E402
+from ttd3_jax.run import spec as sp  # noqa: E402
+from ttd3_jax.run.loop import run  # noqa: E402
+from ttd3_jax.run.rundir import read_metrics  # noqa: E402
+from ttd3_jax.run.sharding import ENV, SWEEP, make_mesh, runner_fns, seed_env_mesh, shard_vmapped  # noqa: E402
 from ttd3_jax.td3.config import Hyper  # noqa: E402
 from ttd3_jax.td3.trainer import seed_keys  # noqa: E402
 

@@ -17,7 +17,7 @@ import tempfile
 
 import pytest
 
-from ttd3_jax.console import PACKAGE_LOGGER, show_messages
+from ttd3_jax.cli.console import PACKAGE_LOGGER, show_messages
 
 # created here unless the environment names one: pytest-xdist's workers inherit the
 # controller's, so that all of them share one cache (and only the controller removes it)

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttd3_jax import adapters
+from ttd3_jax.interop import adapters
 from ttd3_jax.sim.config import make_config
 
 CFG = make_config("practical", episode_steps=50, track="spiral_rt")  # 5 control steps of 10 ms

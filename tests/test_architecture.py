@@ -1,20 +1,25 @@
-"""The package's shape (docs/architecture.md): layers that import only downward, no import
-inside a function, modules and functions small enough to read, a trainer that knows nothing
-of quadrotors, one choice of actor update, and a walk of one transition that is true."""
+"""The package's shape (docs/architecture.md), measured from the code: layers that import only
+downward, no import inside a function, modules and functions small enough to read, a trainer
+that knows nothing of quadrotors, two actor updates that share only TD3's core, and one
+compiled epoch that a reader follows through a handful of files (traced, not read off a doc)."""
 
 from __future__ import annotations
 
 import ast
+import json
 import pathlib
-import re
 import subprocess
 import sys
 
+import pytest
+
 PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "ttd3_jax"
 # each module's layer: a module may import only modules of its own or a lower layer
-LAYERS = {"checks": 0, "sim": 1, "control": 2, "td3": 3, "train": 5, "evaluate": 5, "export": 5}
-APP = 4  # everything else at the top level: spec, runs, checkpoint, runner, sharding, report, cache
-MAX_MODULE_LINES, MAX_FUNCTION_LINES = 450, 60
+LAYERS = {"checks": 0, "sim": 1, "control": 2, "td3": 3, "run": 4, "interop": 5, "cli": 6}
+ENTRY = 7  # the thin entry points ttd3_jax/train.py, evaluate.py, export.py (python -m ttd3_jax.X)
+MAX_MODULE_LINES, MAX_FUNCTION_LINES = 600, 60
+# one compiled epoch of fast / fast_dpg enters at most this many package files, at most this deep
+MAX_EPOCH_FILES, MAX_EPOCH_DEPTH = 12, 12
 
 
 def modules():
@@ -30,7 +35,7 @@ NAMES = {name for name, _, _ in modules()}
 
 def layer(module: str) -> int:
     parts = module.split(".")
-    return LAYERS.get(parts[1], APP) if len(parts) > 1 else APP
+    return LAYERS.get(parts[1], ENTRY) if len(parts) > 1 else ENTRY
 
 
 def package_imports(tree: ast.AST):
@@ -109,35 +114,54 @@ def test_the_trainer_knows_nothing_about_quadrotors():
     assert out.stdout.strip() == "[]", out.stdout
 
 
-def test_the_actor_update_is_chosen_once():
-    """The paper's step reads nothing of the model-based one: ``model_horizon`` appears once
-    in the trainer (the choice) and never in ``td3/dpg.py``."""
-    assert (PACKAGE / "td3" / "trainer.py").read_text().count("model_horizon") <= 2
-    assert "model_horizon" not in (PACKAGE / "td3" / "dpg.py").read_text()
+def test_each_actor_update_is_its_own_path_on_td3s_core():
+    """``td3/dpg.py`` (the paper's ∂Q/∂a) and ``td3/model_based.py`` (through the simulator)
+    import neither each other nor the trainer: each builds on ``td3/core.py`` alone, and
+    ``td3/trainer.py`` is the one module that names both (the choice, made once)."""
+    imports = {name: {t for _, t in package_imports(tree)} for name, _, tree in modules()}
+    dpg, mb, core = "ttd3_jax.td3.dpg", "ttd3_jax.td3.model_based", "ttd3_jax.td3.core"
+    for a, b in ((dpg, mb), (mb, dpg)):
+        assert b not in imports[a] and "ttd3_jax.td3.trainer" not in imports[a] and core in imports[a]
+    assert [n for n, i in imports.items() if dpg in i and mb in i] == ["ttd3_jax.td3.trainer"]
 
 
-def _defined(path: pathlib.Path) -> set[str]:
-    """Every function of ``path``, methods as ``Class.method``."""
-    names = set()
-    for node in ast.parse(path.read_text()).body:
-        if isinstance(node, ast.FunctionDef):
-            names.add(node.name)
-        elif isinstance(node, ast.ClassDef):
-            names |= {f"{node.name}.{f.name}" for f in node.body if isinstance(f, ast.FunctionDef)}
-    return names
+def traced_epoch(preset: str) -> tuple[list[str], int]:
+    """The package files one compiled epoch of ``preset`` (at a tiny size) enters while it is
+    traced, and the deepest nesting of package function calls (``sys.setprofile`` around
+    ``jax.make_jaxpr`` of the trainer's epoch)."""
+    code = f"""
+import json, os, sys, jax
+sys.path.insert(0, {str(ROOT / "tests")!r})
+from tiny import tiny
+from ttd3_jax.run import spec as sp
+pkg = os.path.dirname(sp.__file__).rsplit(os.sep, 1)[0] + os.sep
+s = tiny(**({{"model_horizon": 2}} if {preset!r} == "fast" else {{}}))
+t = sp.trainer_for(s)
+ts = jax.eval_shape(t.init, jax.random.PRNGKey(0), s.hp)
+files, depth, deepest = set(), [0], [0]
+def profile(frame, event, arg):
+    if frame.f_code.co_filename.startswith(pkg):
+        if event == "call":
+            files.add(os.path.relpath(frame.f_code.co_filename, pkg))
+            depth[0] += 1
+            deepest[0] = max(deepest[0], depth[0])
+        elif event == "return":
+            depth[0] -= 1
+sys.setprofile(profile)
+jax.make_jaxpr(t.epoch)(ts, s.hp)
+sys.setprofile(None)
+print(json.dumps([sorted(files), deepest[0]]))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    files, depth = json.loads(out.stdout.strip().splitlines()[-1])
+    return files, depth
 
 
-def test_the_walk_of_one_transition_in_the_docs_is_true():
-    """docs/architecture.md's table of one transition names at most 6 files, and every
-    function it names is defined in the file its row names."""
-    doc = (ROOT / "docs" / "architecture.md").read_text()
-    section = doc.split("## One transition through the code")[1].split("\n## ")[0]
-    rows = [r for r in section.splitlines() if re.match(r"\| \d+ \|", r)]
-    files, missing = set(), []
-    for row in rows:
-        cells = [c.strip() for c in row.strip("|").split("|")]
-        path, functions = cells[1].strip("`"), re.findall(r"`([\w.]+)`", cells[2])
-        files.add(path)
-        missing += [f"{path}: {f}" for f in functions if f not in _defined(ROOT / path)]
-    assert len(rows) >= 10 and len(files) <= 6, (len(rows), sorted(files))
-    assert not missing, missing
+@pytest.mark.parametrize("preset", ["fast", "fast_dpg"])
+def test_one_epoch_runs_through_a_handful_of_files(preset):
+    """The model-based (``fast``) and the paper's (``fast_dpg``) epoch: env step → buffer →
+    loss → optax update in at most 12 package files, at a call depth of at most 12."""
+    files, depth = traced_epoch(preset)
+    assert len(files) <= MAX_EPOCH_FILES and depth <= MAX_EPOCH_DEPTH, (len(files), depth, files)
+    assert "td3/core.py" in files and ("td3/model_based.py" in files) == (preset == "fast")
+    assert ("td3/dpg.py" in files) == (preset == "fast_dpg") and "sim/env.py" in files

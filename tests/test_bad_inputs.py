@@ -11,8 +11,9 @@ import re
 import pytest
 from tiny import TINY_CLI, tiny
 
-from ttd3_jax import evaluate, export, run_state, runs, train
-from ttd3_jax import spec as sp
+from ttd3_jax.cli import evaluate, export, train
+from ttd3_jax.run import rundir, status
+from ttd3_jax.run import spec as sp
 from ttd3_jax.sim import custom_tracks as ct
 
 HERE = os.path.dirname(__file__)
@@ -107,7 +108,7 @@ def test_evaluate_refuses_a_physics_step_the_integrator_does_not_take(capsys):
 
 
 def test_export_out_must_be_a_writable_directory(tmp_path, capsys):
-    run_dir = runs.new_run_dir(str(tmp_path / "runs"), tiny())
+    run_dir = rundir.new_run_dir(str(tmp_path / "runs"), tiny())
     afile = tmp_path / "afile"
     afile.write_text("")
     err = refused(export.main, [run_dir, "--out", "/proc/x", "--no-onnx"], capsys)
@@ -132,7 +133,7 @@ def test_export_out_must_be_a_writable_directory(tmp_path, capsys):
     ],
 )
 def test_a_config_json_missing_a_field_or_of_a_wrong_type_is_refused(tmp_path, edit, message, capsys):
-    run_dir = runs.new_run_dir(str(tmp_path), tiny())
+    run_dir = rundir.new_run_dir(str(tmp_path), tiny())
     path = os.path.join(run_dir, "config.json")
     with open(path) as fh:
         d = json.load(fh)
@@ -153,7 +154,7 @@ def test_a_config_of_another_format_gets_one_line_naming_it(tmp_path, capsys):
         old = {k: v for k, v in d.items() if k != "format"} if other is None else {**d, "format": other}
         with pytest.raises(ValueError, match=f"config.json is format {other!r}, written by an older"):
             sp.from_dict(old)
-    run_dir = runs.new_run_dir(str(tmp_path), tiny())
+    run_dir = rundir.new_run_dir(str(tmp_path), tiny())
     with open(os.path.join(run_dir, "config.json"), "w") as fh:
         json.dump({**d, "format": 9}, fh)
     for main, args in ((evaluate.main, [run_dir, "--no-timing"]), (train.main, ["--resume", run_dir]),
@@ -166,7 +167,7 @@ def test_every_committed_run_spec_loads():
     found = glob.glob(os.path.join(HERE, "..", "results", "**", "config.json"), recursive=True)
     assert len(found) >= 8
     for path in found:
-        assert runs.load_spec(os.path.dirname(path)).train.epochs >= 1, path
+        assert rundir.load_spec(os.path.dirname(path)).train.epochs >= 1, path
 
 
 def test_help_puts_each_option_under_its_own_text(capsys):
@@ -187,8 +188,8 @@ def test_help_puts_each_option_under_its_own_text(capsys):
 def test_resume_takes_an_out_directory_like_evaluate_and_export(tmp_path, capsys):
     """``--resume OUT`` resolves a training --out folder to its newest run (here a finished
     one, which it names and leaves alone, without compiling)."""
-    run_dir = runs.new_run_dir(str(tmp_path), tiny())
-    run_state.mark(run_dir, "finished", epoch=2)
+    run_dir = rundir.new_run_dir(str(tmp_path), tiny())
+    status.mark(run_dir, "finished", epoch=2)
     assert train.main(["--resume", str(tmp_path)]) == 0
     out = capsys.readouterr()
     assert f"{run_dir} finished all 2 epochs" in out.out + out.err

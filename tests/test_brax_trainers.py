@@ -1,4 +1,4 @@
-"""Brax's own PPO and SAC train the tracking env (with ttd3_jax.brax_compat's shim for
+"""Brax's own PPO and SAC train the tracking env (with ttd3_jax.interop.brax_compat's shim for
 jax.device_put_replicated), and the env is in Brax's registry."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from brax import envs as brax_envs
 from brax.training.agents.ppo import train as ppo
 from brax.training.agents.sac import train as sac
 
-from ttd3_jax import brax_compat
+from ttd3_jax.interop import brax_compat
 from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.env import TrackingEnv
 
@@ -100,7 +100,7 @@ def test_install_adds_a_replicating_device_put_only_when_missing():
 def test_device_put_replicated_shards_one_copy_per_device():
     code = textwrap.dedent("""
         import jax, jax.numpy as jnp, numpy as np
-        from ttd3_jax.brax_compat import device_put_replicated
+        from ttd3_jax.interop.brax_compat import device_put_replicated
         devs = jax.local_devices()
         assert len(devs) == 2, devs
         r = device_put_replicated(jnp.arange(4.0), devs)

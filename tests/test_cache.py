@@ -1,4 +1,4 @@
-"""Stored traced programs (:class:`ttd3_jax.cache.StoredProgram`): a warm launch loads the
+"""Stored traced programs (:class:`ttd3_jax.run.cache.StoredProgram`): a warm launch loads the
 program instead of tracing it, and runs the same bits as plain ``jit``."""
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from tiny import tiny
 
-from ttd3_jax import runner
-from ttd3_jax import spec as sp
-from ttd3_jax.cache import StoredProgram, program_store
-from ttd3_jax.sharding import runner_fns
+from ttd3_jax.run import loop
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.cache import StoredProgram, program_store
+from ttd3_jax.run.sharding import runner_fns
 from ttd3_jax.td3.trainer import seed_keys
 
 
@@ -145,7 +145,7 @@ def _track_csv(path, amplitude: float) -> None:
 def test_a_training_csv_edited_in_place_is_traced_again_and_trains_on_its_new_contents(tmp_path, monkeypatch):
     """The issue's sequence: a run on a training-track CSV, the CSV edited in place (same
     length), the same run again: it traces again and equals plain jit on the new track."""
-    monkeypatch.setattr(runner, "program_store", lambda: str(tmp_path / "store"))
+    monkeypatch.setattr(loop, "program_store", lambda: str(tmp_path / "store"))
     csv = tmp_path / "track.csv"
     _track_csv(csv, 1.0)
     spec = tiny()
@@ -157,7 +157,7 @@ def test_a_training_csv_edited_in_place_is_traced_again_and_trains_on_its_new_co
         keys = seed_keys(spec.seed, spec.num_seeds)
         raw = runner_fns(sp.trainer_for(spec), keys, spec.hp)
         counted = tuple(Counting(f) for f in raw[:3]) + raw[3:]
-        fns = runner._stored(spec, counted) if stored else raw
+        fns = loop._stored(spec, counted) if stored else raw
         return train_one_epoch(keys, spec.hp, *fns[:3], compile_), [c.calls for c in counted[:3]]
 
     first, calls = launch(stored=True)
@@ -186,7 +186,7 @@ def test_the_runner_loads_one_seeds_programs_for_another_seed_and_learning_rate(
     """The runner's key leaves out the seed and the hyperparameter values (traced
     arguments): seed 1 with another learning rate loads seed 0's programs and runs what
     plain jit runs for it."""
-    monkeypatch.setattr(runner, "program_store", lambda: str(tmp_path))
+    monkeypatch.setattr(loop, "program_store", lambda: str(tmp_path))
     a = tiny(model_horizon=2)
     b = dataclasses.replace(a, seed=1, hp=dataclasses.replace(a.hp, lr_actor=3e-3, sigma=0.2))
     compile_ = lambda f, *x: f.lower(*x).compile()  # noqa: E731
@@ -198,10 +198,10 @@ def test_the_runner_loads_one_seeds_programs_for_another_seed_and_learning_rate(
     keys, plain = fns(b)
     want = train_one_epoch(keys, b.hp, *plain[:3], compile_)
     keys_a, stored_a = fns(a)
-    train_one_epoch(keys_a, a.hp, *runner._stored(a, stored_a)[:3], compile_)  # cold: traced, stored
+    train_one_epoch(keys_a, a.hp, *loop._stored(a, stored_a)[:3], compile_)  # cold: traced, stored
     keys, raw = fns(b)
     counted = tuple(Counting(f) for f in raw[:3]) + raw[3:]
-    stored_b = runner._stored(b, counted)
+    stored_b = loop._stored(b, counted)
     assert all(isinstance(f, StoredProgram) for f in stored_b[:3])
     assert train_one_epoch(keys, b.hp, *stored_b[:3], compile_) == want
     assert [c.calls for c in counted[:3]] == [0, 0, 0]

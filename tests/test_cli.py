@@ -15,11 +15,23 @@ import jax
 import pytest
 from tiny import TINY_CLI
 
-from ttd3_jax import checkpoint as ckpt
-from ttd3_jax import runs
-from ttd3_jax import spec as sp
-from ttd3_jax.cache import default_compile_cache, use_compile_cache
-from ttd3_jax.train import main
+from ttd3_jax.cli.train import main
+from ttd3_jax.run import checkpoint as ckpt
+from ttd3_jax.run import rundir
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.cache import default_compile_cache, use_compile_cache
+
+
+def test_help_lists_the_options_a_user_sets(capsys):
+    """``train --help`` shows at most 70 options (a ``--no-X`` switch is its option's other
+    half); the readings of the paper and internal constants are run-spec fields, not flags."""
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = capsys.readouterr().out
+    options = {re.sub(r"(^--|\.)no-", r"\1", f) for f in re.findall(r"--[a-z][a-z0-9.-]*[a-z0-9]", out)}
+    assert "--hp.lr-actor" in options and "--task.vehicle.quad.mass" in options
+    assert "--task.tracks.generator.los-heading" not in options and "--noise.delta-reduce" not in options
+    assert len(options) <= 70, sorted(options)
 
 
 @pytest.mark.parametrize(
@@ -33,9 +45,8 @@ from ttd3_jax.train import main
         (["--hp.lam", "inf"], "hp.lam must be a finite number"),
         (["--hp.beta", "nan"], "hp.beta must be a finite number"),
         (["--task.reward.e-max", "-1"], "EnvConfig.reward.e_max must be a finite number > 0"),
-        (["--task.observation.obs-frame", "heading"], "obs_frame must be one of"),
-        (["--task.tracks.track", "spiral_rt"], "task.tracks.track must be 'train'"),
-        (["--task.tracks.los-seed", "3"], "task.tracks.los_seed 0"),
+        (["--task.reward.err-cost", "cubic"], "err_cost must be one of"),
+        (["--task.tracks.track", "spiral_rt"], "Unrecognized options: --task.tracks.track"),  # internal
         (
             ["--preset", "mujoco", "--task.reward.e-max", "1.5"],
             r"--task.\* sets the quadrotor env; env 'hopper' has none",
@@ -107,7 +118,7 @@ def test_sigkill_then_resume_finishes_the_run(tmp_path):
     assert f"resumed {run_dir} at epoch {last}/4" in res.stdout
     # the CLI uses $JAX_COMPILATION_CACHE_DIR (tests/conftest.py sets it) as its cache
     assert f"XLA compilation cache: {os.environ['JAX_COMPILATION_CACHE_DIR']}" in res.stdout
-    assert [int(r["epoch"]) for r in runs.read_metrics(str(run_dir))] == [1, 2, 3, 4]
+    assert [int(r["epoch"]) for r in rundir.read_metrics(str(run_dir))] == [1, 2, 3, 4]
     assert os.path.isfile(run_dir / "eval.json")
 
 

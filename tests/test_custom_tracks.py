@@ -11,14 +11,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from ttd3_jax.cli.evaluate import main
+from ttd3_jax.cli.train import parse
 from ttd3_jax.control import generalization as gen
 from ttd3_jax.control.closed_loop import Rollout
-from ttd3_jax.evaluate import main
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import EVAL_CRASH_M, make_config
 from ttd3_jax.sim.env import TrackingEnv
-from ttd3_jax.train import parse
 
 DT = 1e-3
 

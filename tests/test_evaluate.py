@@ -17,9 +17,7 @@ import pytest
 from experiment_scripts import experiment
 from tiny import tiny
 
-from ttd3_jax import checkpoint as ckpt
-from ttd3_jax import report, runs
-from ttd3_jax import spec as sp
+from ttd3_jax.cli.evaluate import main
 from ttd3_jax.control.closed_loop import closed_loop, evaluate_on_tracks, hover_controller, sensed_controller
 from ttd3_jax.control.closed_loop import test_tracks as make_test_tracks
 from ttd3_jax.control.evaluator import controller_build
@@ -30,10 +28,12 @@ from ttd3_jax.control.robustness import (
     evaluate_robustness,
     robustness_conditions,
 )
-from ttd3_jax.evaluate import main
-from ttd3_jax.report import TRACE_COLUMNS
-from ttd3_jax.runner import run
-from ttd3_jax.sharding import per_seed
+from ttd3_jax.run import checkpoint as ckpt
+from ttd3_jax.run import report, rundir
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.loop import run
+from ttd3_jax.run.report import TRACE_COLUMNS
+from ttd3_jax.run.sharding import per_seed
 from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.dynamics import yaw_of
@@ -188,7 +188,7 @@ def test_probe_critics_reads_a_run_and_matches_a_direct_critic_call(tmp_path, ca
     r = pc.probe(run_dir)
     # oracle: the same critics called directly on the start state (the fake run's obs stats
     # are zeros, so the normaliser maps every observation to the clip bounds or 0)
-    loaded = runs.load_train_state(run_dir)
+    loaded = rundir.load_train_state(run_dir)
     trainer = loaded.trainer
     _, critic = init_params(trainer.nets, jax.random.PRNGKey(3), trainer.env.obs_size, 4)
     env = TrackingEnv(loaded.spec.task.for_eval("spiral_rt"))

@@ -17,12 +17,12 @@ import pytest
 from experiment_scripts import experiment
 from tiny import tiny
 
-from ttd3_jax import policy_export as pe
-from ttd3_jax import runs
-from ttd3_jax import spec as sp
+from ttd3_jax.cli.export import main as export_main
 from ttd3_jax.control import closed_loop as cl
-from ttd3_jax.export import main as export_main
-from ttd3_jax.runner import run
+from ttd3_jax.interop import policy as pe
+from ttd3_jax.run import rundir
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.loop import run
 from ttd3_jax.sim.env import TrackingEnv
 from ttd3_jax.td3.trainer import act
 
@@ -39,7 +39,7 @@ def exported(tmp_path_factory):
 
 def jax_policy(run_dir):
     """The run's loaded policies and the first seed's actor as a jitted raw-obs function."""
-    loaded = runs.load_run(run_dir)
+    loaded = rundir.load_run(run_dir)
     setup = sp.trainer_for(loaded.spec).setup
     actor, stats = loaded.thetas[0][1]
     return loaded, jax.jit(lambda obs: act(setup, actor, stats, obs))
@@ -118,7 +118,7 @@ def test_a_numpy_reimplementation_from_policy_json_reproduces_eval_json(exported
 def test_the_sidecar_says_what_the_policy_reads_and_writes(exported):
     run_dir, out = exported
     meta = json.load(open(os.path.join(out, "policy.json")))
-    cfg = runs.load_spec(run_dir).task
+    cfg = rundir.load_spec(run_dir).task
     assert len(meta["observation"]) == meta["obs_size"] == TrackingEnv(cfg).observation_size == 17
     assert meta["control_hz"] == pytest.approx(1 / cfg.control_dt)
     assert meta["vehicle"]["mass"] == cfg.vehicle.quad.mass

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tests.tiny import tiny
-from ttd3_jax import spec as sp
+from ttd3_jax.run import spec as sp
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.env import TrackingEnv, error_cost

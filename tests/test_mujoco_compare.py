@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from experiment_scripts import experiment
 
-from ttd3_jax import spec as sp
+from ttd3_jax.run import spec as sp
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 mc = experiment("mujoco_compare")

@@ -69,7 +69,7 @@ def test_a_layout_refuses_parts_that_do_not_match_it():
 def test_the_error_integral_integrates_the_observed_position_as_policy_json_says():
     """obs_memory's error integral follows policy.json's recurrence with the *measured* position
     (noise and bias included): a vehicle can keep it, and it does not leak the true state."""
-    from ttd3_jax.policy_export import memory_spec
+    from ttd3_jax.interop.policy import memory_spec
 
     cfg = make_config("practical", obs_memory=True, obs_noise_pos=0.01, pos_bias=(0.02, 0.0, -0.01))
     env, lay, mem = TrackingEnv(cfg), observation.layout(cfg), memory_spec(cfg)
@@ -119,7 +119,7 @@ def test_the_reference_integral_shifts_the_observed_reference_as_policy_json_say
     """observation.ref_integral_gain: ref_int += dt (p_d,k − p) per axis within ±band after each step, and
     the parts between the vehicle and the reference read p − s, s = clip(gain ref_int, ±limit);
     the rest of the observation is the one without the integral."""
-    from ttd3_jax.policy_export import memory_spec
+    from ttd3_jax.interop.policy import memory_spec
 
     base = make_config("practical", obs_memory=True, track="spiral_rt", randomize_init=False)
     cfg = base.replace(ref_integral_gain=40.0, ref_integral_band=0.003, ref_integral_limit=0.001)
@@ -183,4 +183,3 @@ def test_a_bad_reference_integral_is_refused_naming_the_field(field, bad, allowe
 def test_the_reference_integral_needs_the_memory():
     with pytest.raises(ValueError, match=r"observation\.ref_integral_gain must be 0 without obs_memory"):
         make_config("practical", ref_integral_gain=2.0)
-

@@ -13,7 +13,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from ttd3_jax import policy_export as pe
+from ttd3_jax.interop import policy as pe
 
 README = os.path.join(os.path.dirname(__file__), "..", "README.md")
 

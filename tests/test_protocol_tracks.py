@@ -13,7 +13,7 @@ import pytest
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "experiments"))
 import protocol_tracks as pt  # noqa: E402
 
-from ttd3_jax import spec as sp  # noqa: E402
+from ttd3_jax.run import spec as sp  # noqa: E402
 from ttd3_jax.sim import trajectories as tr  # noqa: E402
 from ttd3_jax.sim.env import (
     TrackingEnv,  # noqa: E402

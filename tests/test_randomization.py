@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from tiny import tiny
 
-from ttd3_jax import spec as sp
+from ttd3_jax.run import spec as sp
 from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim.config import PLANT_NEUTRAL, make_config
 from ttd3_jax.sim.dynamics import QuadParams
@@ -227,4 +227,3 @@ def test_a_tiny_randomised_run_trains():
     ts, m = jax.jit(t.epoch)(ts, s.hp)
     assert np.all(np.isfinite(np.asarray(m["critic_loss"])))
     assert np.isfinite(float(jax.jit(t.evaluate)(ts)["spiral_tracking_error"]))
-

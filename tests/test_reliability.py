@@ -15,10 +15,11 @@ import pytest
 from test_evaluate import fake_run_dir
 from tiny import tiny
 
-from ttd3_jax import checkpoint as ckpt
-from ttd3_jax import memory, run_state, runs, train
-from ttd3_jax import spec as sp
-from ttd3_jax.runner import finished_note
+from ttd3_jax.cli import train
+from ttd3_jax.run import checkpoint as ckpt
+from ttd3_jax.run import memory, rundir, status
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.loop import finished_note
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim.env import mixture_num_segments, num_validation_tracks
 
@@ -28,7 +29,7 @@ GIB = 2**30
 def two_checkpoints(tmp_path) -> str:
     """A run directory with checkpoints 2 and 3 (3 = 2's state), each with its digest."""
     run_dir = fake_run_dir(tmp_path / "run")
-    state = runs.load_train_state(run_dir).state
+    state = rundir.load_train_state(run_dir).state
     ckpt.save(ckpt.manager(run_dir), 3, state)
     return run_dir
 
@@ -47,7 +48,7 @@ def test_random_bytes_in_the_newest_checkpoint_fall_back_to_the_one_before(tmp_p
     with open(path, "r+b") as fh:
         fh.seek(size // 2)
         fh.write(np.random.default_rng(0).bytes(min(4096, size - size // 2)))
-    loaded = runs.load_train_state(run_dir)
+    loaded = rundir.load_train_state(run_dir)
     assert loaded.epoch == 2 and [e for e, _ in loaded.skipped] == [3]
 
 
@@ -57,7 +58,7 @@ def test_a_checkpoint_that_loads_but_differs_from_its_digest_is_skipped(tmp_path
     record[3] = "0" * 32  # as if the files had changed without failing to decode
     with open(os.path.join(run_dir, ckpt.DIGESTS), "w") as fh:
         json.dump({str(k): v for k, v in record.items()}, fh)
-    loaded = runs.load_train_state(run_dir)
+    loaded = rundir.load_train_state(run_dir)
     assert loaded.epoch == 2 and "do not match the digest" in loaded.skipped[0][1]
 
 
@@ -66,7 +67,7 @@ def test_readers_leave_a_trainers_unfinished_save_alone(tmp_path):
     tmp = os.path.join(run_dir, "checkpoints", "3.orbax-checkpoint-tmp-1234")
     os.makedirs(tmp)
     before = sorted(os.listdir(os.path.join(run_dir, "checkpoints")))
-    assert runs.load_train_state(run_dir).epoch == 2
+    assert rundir.load_train_state(run_dir).epoch == 2
     assert os.path.isdir(tmp) and sorted(os.listdir(os.path.join(run_dir, "checkpoints"))) == before
 
 
@@ -84,7 +85,7 @@ def test_a_damaged_selected_policy_is_detected(tmp_path):
     with pytest.raises(ckpt.CorruptCheckpoint, match="does not match the digest in best/best.json"):
         ckpt.load_policy(str(tmp_path), 7, like)
     with pytest.raises(ValueError, match="no longer kept, so it cannot be rebuilt"):
-        runs.selected_policy(str(tmp_path), 7, 0, like, 4)
+        rundir.selected_policy(str(tmp_path), 7, 0, like, 4)
 
 
 def dead_pid() -> int:
@@ -95,45 +96,45 @@ def dead_pid() -> int:
 
 def test_one_writer_per_run_and_a_stale_lock_is_taken_over(tmp_path):
     run_dir = str(tmp_path)
-    assert run_state.acquire(run_dir) is None
+    assert status.acquire(run_dir) is None
     with pytest.raises(
-        run_state.RunLocked, match=rf"being trained by pid {os.getpid()} on .*one writer per run"
+        status.RunLocked, match=rf"being trained by pid {os.getpid()} on .*one writer per run"
     ):
-        run_state.acquire(run_dir)
-    run_state.release(run_dir)
-    assert run_state.holder(run_dir) is None
-    lock = {"pid": dead_pid(), "host": run_state.socket.gethostname(), "since": "then"}
-    (tmp_path / run_state.LOCK).write_text(json.dumps(lock))
-    note = run_state.acquire(run_dir)
+        status.acquire(run_dir)
+    status.release(run_dir)
+    assert status.holder(run_dir) is None
+    lock = {"pid": dead_pid(), "host": status.socket.gethostname(), "since": "then"}
+    (tmp_path / status.LOCK).write_text(json.dumps(lock))
+    note = status.acquire(run_dir)
     assert note == f"took over the lock of pid {lock['pid']} on {lock['host']}, which is no longer running"
-    assert run_state.holder(run_dir)["pid"] == os.getpid()
-    run_state.release(run_dir)
+    assert status.holder(run_dir)["pid"] == os.getpid()
+    status.release(run_dir)
 
 
 def test_the_state_says_failed_with_the_reason_and_running_turns_interrupted(tmp_path):
     run_dir = str(tmp_path)
-    with pytest.raises(ZeroDivisionError), run_state.writing(run_dir, log=lambda *a: None):
-        assert run_state.state(run_dir)["state"] == "running"
+    with pytest.raises(ZeroDivisionError), status.writing(run_dir, log=lambda *a: None):
+        assert status.state(run_dir)["state"] == "running"
         1 / 0  # noqa: B018
-    assert run_state.state(run_dir)["reason"].startswith("ZeroDivisionError")
-    assert run_state.holder(run_dir) is None
-    run_state.mark(run_dir, "running")
-    assert run_state.state(run_dir)["state"] == "interrupted"  # nobody holds the lock: it was killed
+    assert status.state(run_dir)["reason"].startswith("ZeroDivisionError")
+    assert status.holder(run_dir) is None
+    status.mark(run_dir, "running")
+    assert status.state(run_dir)["state"] == "interrupted"  # nobody holds the lock: it was killed
 
 
 def test_find_run_skips_failed_runs_and_says_so(tmp_path):
-    good = runs.new_run_dir(str(tmp_path), tiny())
-    run_state.mark(good, "finished")
-    bad = runs.new_run_dir(str(tmp_path), tiny(seed=1))
-    run_state.mark(bad, "failed", reason="MemoryError: out of memory")
-    path, note = runs.find_run(str(tmp_path))
+    good = rundir.new_run_dir(str(tmp_path), tiny())
+    status.mark(good, "finished")
+    bad = rundir.new_run_dir(str(tmp_path), tiny(seed=1))
+    status.mark(bad, "failed", reason="MemoryError: out of memory")
+    path, note = rundir.find_run(str(tmp_path))
     assert path == good and f"skipped {os.path.basename(bad)} (failed: MemoryError" in note
 
 
 def test_resume_of_a_finished_run_does_nothing(tmp_path):
-    run_dir = runs.new_run_dir(str(tmp_path), tiny())
+    run_dir = rundir.new_run_dir(str(tmp_path), tiny())
     assert finished_note(run_dir, tiny()) is None
-    run_state.mark(run_dir, "finished")
+    status.mark(run_dir, "finished")
     assert "finished all 2 epochs (eval.json); nothing to resume" in finished_note(run_dir, tiny())
 
 
@@ -186,7 +187,7 @@ def test_a_full_disk_or_no_memory_ends_in_one_line_with_what_to_do():
 
 QUIET_PROBE = """
 import threading
-from ttd3_jax import train
+from ttd3_jax.cli import train
 train._quiet_background_failures()
 class Closed:  # an exception in __del__ reaches sys.unraisablehook, as tensorstore's threads' do
     def __init__(self, text):
@@ -296,8 +297,8 @@ def test_resume_past_a_damaged_newest_checkpoint_says_so_once_and_prints_no_trac
 
 
 def test_remove_deletes_a_run_killed_before_its_first_checkpoint_and_nothing_else(tmp_path, capsys):
-    unstarted = runs.new_run_dir(str(tmp_path), tiny())
-    run_state.mark(unstarted, "running")  # killed during compile or warm-up: no checkpoint
+    unstarted = rundir.new_run_dir(str(tmp_path), tiny())
+    status.mark(unstarted, "running")  # killed during compile or warm-up: no checkpoint
     os.makedirs(os.path.join(unstarted, "checkpoints", "0.orbax-checkpoint-tmp-7"))
     assert train.main(["--remove", unstarted]) == 0
     assert capsys.readouterr().out == f"removed {unstarted} (it stopped before its first checkpoint)\n"
@@ -307,11 +308,11 @@ def test_remove_deletes_a_run_killed_before_its_first_checkpoint_and_nothing_els
     err = capsys.readouterr().err
     assert f"{trained} holds checkpoint(s) [2, 3]" in err and f"--resume {trained}" in err
     assert os.path.isdir(os.path.join(trained, "checkpoints", "3"))
-    live = runs.new_run_dir(str(tmp_path), tiny(seed=1))
-    run_state.acquire(live)  # a live process (this one) trains it
+    live = rundir.new_run_dir(str(tmp_path), tiny(seed=1))
+    status.acquire(live)  # a live process (this one) trains it
     assert train.main(["--remove", live]) == 2 and "one writer per run" in capsys.readouterr().err
     assert os.path.isdir(live)
-    run_state.release(live)
+    status.release(live)
     assert train.main(["--remove", live, "--epochs", "3"]) == 2
     assert "--remove deletes a run and takes nothing else; remove --epochs 3" in capsys.readouterr().err
     assert (

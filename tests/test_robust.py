@@ -10,9 +10,9 @@ import os
 import jax
 import numpy as np
 
-from ttd3_jax import runs
-from ttd3_jax import spec as sp
-from ttd3_jax.runner import run
+from ttd3_jax.run import rundir
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.loop import run
 from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim.env import TrackingEnv, num_validation_tracks
 
@@ -43,11 +43,11 @@ def test_the_robust_preset_randomises_the_plant_and_the_tracks():
 def test_a_tiny_robust_run_trains_and_selects_on_the_wide_validation_tracks(tmp_path):
     spec = sp.preset("robust", **TINY)
     summary = run(spec, out=str(tmp_path), verbose=False)
-    rows = runs.read_metrics(summary["run_dir"])
+    rows = rundir.read_metrics(summary["run_dir"])
     assert len(rows) == spec.num_seeds * TINY["epochs"]
     for row in rows:
         assert np.isfinite(float(row["val_tracking_error"])) and np.isfinite(float(row["critic_loss"]))
-    assert {r["seed"] for r in runs.selected_policies(summary["run_dir"])} == {0, 1, 2}
+    assert {r["seed"] for r in rundir.selected_policies(summary["run_dir"])} == {0, 1, 2}
     with open(os.path.join(summary["run_dir"], "config.json")) as f:
         saved = sp.from_dict(json.load(f))
     assert saved == spec and saved.task.randomization.mass == (0.85, 1.15)

@@ -13,9 +13,9 @@ import pytest
 from experiment_scripts import experiment
 from test_evaluate import fake_run_dir
 
-from ttd3_jax import spec as sp
 from ttd3_jax.control.robustness import ROBUSTNESS_CONDITIONS, ROBUSTNESS_DESCRIPTIONS
-from ttd3_jax.runner import run
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.loop import run
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 NMPC_JSON = os.path.join(HERE, "..", "results", "robustness", "nmpc.json")

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 from tiny import tiny
 
-from ttd3_jax import checkpoint as ckpt
-from ttd3_jax import runs
-from ttd3_jax import spec as sp
+from ttd3_jax.cli.evaluate import main as evaluate_main
 from ttd3_jax.control.closed_loop import evaluate_on_tracks
 from ttd3_jax.control.closed_loop import test_tracks as make_test_tracks
-from ttd3_jax.evaluate import main as evaluate_main
-from ttd3_jax.runner import LiveBar, TrainingDiverged, check_finite, run
-from ttd3_jax.sharding import runner_fns
+from ttd3_jax.run import checkpoint as ckpt
+from ttd3_jax.run import rundir
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.loop import LiveBar, TrainingDiverged, check_finite, run
+from ttd3_jax.run.sharding import runner_fns
 from ttd3_jax.sim.env import TrackingEnv
 from ttd3_jax.td3.config import Hyper
 from ttd3_jax.td3.trainer import seed_keys
@@ -43,11 +43,11 @@ def test_resume_equals_uninterrupted(tmp_path):
     part = run(s, out=str(tmp_path / "b"), verbose=False, stop_after=1)
     assert part["stopped_at"] == 1
     resumed = run(resume=part["run_dir"], verbose=False)
-    assert_same_rows(runs.read_metrics(full["run_dir"]), runs.read_metrics(resumed["run_dir"]))
+    assert_same_rows(rundir.read_metrics(full["run_dir"]), rundir.read_metrics(resumed["run_dir"]))
     assert full["final_eval"] == resumed["final_eval"]
     for name in ("config.json", "metrics.csv", "eval.json", "learning_curve.png"):
         assert os.path.isfile(os.path.join(resumed["run_dir"], name))
-    assert runs.load_spec(resumed["run_dir"]) == s  # config.json holds the whole spec
+    assert rundir.load_spec(resumed["run_dir"]) == s  # config.json holds the whole spec
     ev = json.load(open(os.path.join(full["run_dir"], "eval.json")))
     assert set(ev["final_eval"][0]) >= {"spiral_tracking_error", "los_tracking_error", "spiral_energy"}
 
@@ -66,7 +66,7 @@ def test_a_checkpoint_that_does_not_load_is_skipped_by_resume_and_evaluate(tmp_p
     full = run(s, out=str(tmp_path / "a"), verbose=False)
     part = run(s, out=str(tmp_path / "b"), verbose=False, stop_after=2)["run_dir"]
     assert _break_newest(part) == 2
-    loaded = runs.load_train_state(part)
+    loaded = rundir.load_train_state(part)
     assert loaded.epoch == 1 and [e for e, _ in loaded.skipped] == [2]
     # the training --out directory names its (only) run
     assert evaluate_main([str(tmp_path / "b"), "--no-timing", "--json", str(tmp_path / "e.json")]) == 0
@@ -75,7 +75,7 @@ def test_a_checkpoint_that_does_not_load_is_skipped_by_resume_and_evaluate(tmp_p
     resumed = run(resume=part, verbose=True)
     out = capsys.readouterr().out
     assert "skipped checkpoint 2, which does not load" in out and "resumed" in out and "at epoch 1/3" in out
-    assert_same_rows(runs.read_metrics(full["run_dir"]), runs.read_metrics(resumed["run_dir"]))
+    assert_same_rows(rundir.read_metrics(full["run_dir"]), rundir.read_metrics(resumed["run_dir"]))
 
 
 def test_resume_refuses_a_run_without_checkpoints_and_leaves_its_metrics(tmp_path):
@@ -94,14 +94,14 @@ def test_damaged_config_json_is_named(tmp_path):
     text = open(path).read()
     open(path, "w").write(text[: len(text) // 2])
     with pytest.raises(ValueError, match=r"config.json is not valid JSON .*damaged"):
-        runs.load_spec(part)
+        rundir.load_spec(part)
     open(path, "w").write(text.replace('"e_max": 1.0', '"e_max": "big"'))
     with pytest.raises(
         ValueError, match=r'config.json: run spec: wrong value type for field "task.reward.e_max"'
     ):
-        runs.load_spec(part)
+        rundir.load_spec(part)
     with pytest.raises(FileNotFoundError, match="not a ttd3_jax run directory"):
-        runs.load_spec(str(tmp_path))
+        rundir.load_spec(str(tmp_path))
 
 
 def test_out_must_be_a_writable_directory(tmp_path):
@@ -206,10 +206,10 @@ def test_diverging_run_keeps_last_good_checkpoint(tmp_path):
 
 def test_csv_log_drops_rows_past_checkpoint(tmp_path):
     path = str(tmp_path / "m.csv")
-    log = runs.CsvLog(path)
+    log = rundir.CsvLog(path)
     log.write([{"epoch": 1, "seed": 0, "x": 1.0}])
     log.write([{"epoch": 2, "seed": 0, "x": 2.0}])
-    runs.CsvLog(path, keep_through_epoch=1)
+    rundir.CsvLog(path, keep_through_epoch=1)
     with open(path) as fh:
         assert fh.read().count("\n") == 2  # header + epoch 1
 
@@ -217,9 +217,9 @@ def test_csv_log_drops_rows_past_checkpoint(tmp_path):
 def test_policy_selected_on_validation_tracks_is_saved_and_reloads(tmp_path):
     """Each seed keeps the policy of its epoch with the lowest validation error (spec T8,
     never the test tracks); eval.json names that epoch with its test figures, and
-    ``runs.load_run(best=True)`` reloads it: evaluated again it gives the same numbers."""
+    ``rundir.load_run(best=True)`` reloads it: evaluated again it gives the same numbers."""
     summary = run(tiny(num_seeds=2, epochs=3), out=str(tmp_path), verbose=False)
-    rows = runs.read_metrics(summary["run_dir"])
+    rows = rundir.read_metrics(summary["run_dir"])
     record = ckpt.best_record(summary["run_dir"])
     assert sorted(record) == [0, 1]
     for sel in summary["selected"]:
@@ -228,7 +228,7 @@ def test_policy_selected_on_validation_tracks_is_saved_and_reloads(tmp_path):
         assert sel["epoch"] == int(best["epoch"]) == record[sel["seed"]]["epoch"]
         assert sel["spiral_tracking_error"] == pytest.approx(best["spiral_tracking_error"])
     assert len(summary["selected_beats_paper"]) == 2
-    loaded = runs.load_run(summary["run_dir"], best=True)
+    loaded = rundir.load_run(summary["run_dir"], best=True)
     assert loaded.epoch == {s["seed"]: s["epoch"] for s in summary["selected"]}
     env = TrackingEnv(loaded.env_config.for_eval("los_rt"))
     for (seed, theta), sel in zip(loaded.thetas, summary["selected"], strict=True):
@@ -244,7 +244,7 @@ def test_fast_preset_model_actor_learns_on_a_small_budget(tmp_path):
     4e4 on both tracks; first epochs measured at this point of training gave Spiral-RT
     22-152 and LOS-RT 237-396 (seeds 0-2), and the bars are about 2x above the worst."""
     part = run(sp.preset("fast"), out=str(tmp_path), verbose=False, stop_after=1)
-    (row,) = runs.read_metrics(part["run_dir"])
+    (row,) = rundir.read_metrics(part["run_dir"])
     sp_, los = float(row["spiral_tracking_error"]), float(row["los_tracking_error"])
     print(f"Spiral-RT {sp_:.1f}, LOS-RT {los:.1f}")
     assert sp_ < 300 and los < 900, (sp_, los)
@@ -274,7 +274,7 @@ def test_brax_mjx_inverted_double_pendulum_smoke(tmp_path):
     summary = run(s, out=str(tmp_path), verbose=False)
     ret = summary["final_eval"][0]["eval_return"]
     assert np.isfinite(ret) and ret > 0  # IDP pays a positive alive bonus each step
-    rows = runs.read_metrics(summary["run_dir"])
+    rows = rundir.read_metrics(summary["run_dir"])
     assert len(rows) == 2 and rows[-1]["env_steps"] == 4 * (20 + 2 * 40)
 
 
@@ -283,12 +283,12 @@ def test_find_run_takes_a_run_or_the_newest_run_under_an_out_directory(tmp_path)
         os.makedirs(tmp_path / name)
         (tmp_path / name / "config.json").write_text("{}")
         os.utime(tmp_path / name / "config.json", (mtime, mtime))
-    assert runs.find_run(str(tmp_path / "old")) == (str(tmp_path / "old"), None)
-    path, note = runs.find_run(str(tmp_path))
+    assert rundir.find_run(str(tmp_path / "old")) == (str(tmp_path / "old"), None)
+    path, note = rundir.find_run(str(tmp_path))
     assert path == str(tmp_path / "new") and "holds 2 runs; using the newest, new" in note
     os.makedirs(tmp_path / "empty")
     with pytest.raises(FileNotFoundError, match="or its subdirectories: not a ttd3_jax run directory"):
-        runs.find_run(str(tmp_path / "empty"))
+        rundir.find_run(str(tmp_path / "empty"))
 
 
 def test_the_live_bar_counts_seconds_then_estimates_from_the_last_epoch(capsys):

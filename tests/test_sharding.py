@@ -1,5 +1,5 @@
 """Sharded sweeps and runner: the same results on 4 (forced CPU) devices as unsharded, and
-the argument errors of ``ttd3_jax.sharding`` on one device."""
+the argument errors of ``ttd3_jax.run.sharding`` on one device."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from ttd3_jax import spec as sp
-from ttd3_jax.sharding import SWEEP, make_mesh, runner_fns, shard_vmapped
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.sharding import SWEEP, make_mesh, runner_fns, shard_vmapped
 from ttd3_jax.td3.config import Hyper
 from ttd3_jax.td3.trainer import seed_keys
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from experiment_scripts import experiment
 
-from ttd3_jax import spec as sp
+from ttd3_jax.run import spec as sp
 
 ss = experiment("sigma_schedule")
 

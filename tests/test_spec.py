@@ -9,9 +9,9 @@ import json
 import pytest
 from tiny import tiny
 
-from ttd3_jax import runs
-from ttd3_jax import spec as sp
-from ttd3_jax.runner import run
+from ttd3_jax.run import rundir
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.loop import run
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.dynamics import QuadParams
 from ttd3_jax.td3.config import Hyper
@@ -70,7 +70,7 @@ def test_a_run_collects_the_budget_computed_from_its_config(tmp_path, capsys, sh
     run_dir = run(s, out=str(tmp_path))["run_dir"]
     said = f"budget: {c.transitions_run:,} of total_transitions {c.total_transitions:,} per seed"
     assert said in capsys.readouterr().out
-    last = runs.read_metrics(run_dir)[-1]
+    last = rundir.read_metrics(run_dir)[-1]
     assert (
         last["env_steps"] == c.transitions_run == (c.warmup_steps + c.epochs * c.steps_per_epoch) * c.num_envs
     )

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from tiny import tiny
 
-from ttd3_jax import spec as sp
+from ttd3_jax.run import spec as sp
 from ttd3_jax.td3 import buffer as rb
 from ttd3_jax.td3 import dpg, model_based, networks
 from ttd3_jax.td3 import noise as nz

@@ -18,11 +18,11 @@ import pytest
 from test_evaluate import fake_run_dir
 from tiny import tiny
 
-from ttd3_jax import policy_export as pe
-from ttd3_jax import runs
-from ttd3_jax import spec as sp
-from ttd3_jax.evaluate import main as evaluate_main
-from ttd3_jax.export import main as export_main
+from ttd3_jax.cli.evaluate import main as evaluate_main
+from ttd3_jax.cli.export import main as export_main
+from ttd3_jax.interop import policy as pe
+from ttd3_jax.run import rundir
+from ttd3_jax.run import spec as sp
 from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim import vehicle_mix as vm
 from ttd3_jax.sim.config import make_config
@@ -181,7 +181,7 @@ def test_the_c_header_flies_both_vehicles_from_the_same_weights(two_vehicle_run,
     cmd = ["cc", "-std=c99", "-O2", "-Wall", "-Werror", "-shared", "-fPIC", "-I", out, str(src)]
     subprocess.run([*cmd, "-o", str(lib), "-lm"], check=True)
     shim = ctypes.CDLL(str(lib)).shim
-    loaded = runs.load_run(two_vehicle_run)
+    loaded = rundir.load_run(two_vehicle_run)
     setup = sp.trainer_for(loaded.spec).setup
     actor, stats = loaded.thetas[0][1]
     policy = pe.from_params(actor, stats, len(meta["observation"]))

@@ -11,12 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ttd3_jax import runs, train
-from ttd3_jax import spec as sp
+from ttd3_jax.cli import train
+from ttd3_jax.cli.evaluate import build_parser, check_run_vehicle, classical_env
+from ttd3_jax.cli.evaluate import main as evaluate_main
 from ttd3_jax.control.closed_loop import closed_loop, metrics
 from ttd3_jax.control.geometric import geometric_controller
-from ttd3_jax.evaluate import build_parser, check_run_vehicle, classical_env
-from ttd3_jax.evaluate import main as evaluate_main
+from ttd3_jax.run import rundir
+from ttd3_jax.run import spec as sp
 from ttd3_jax.sim import vehicles as vh
 from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.dynamics import QuadParams, QuadState, rk4_step
@@ -106,16 +107,17 @@ def test_train_vehicle_round_trips_through_config_json(tmp_path):
     known, spec = train.parse(["--vehicle", "crazyflie", "--task.vehicle.quad.rate-model", "torque"])
     assert spec.task.vehicle.quad == vh.CRAZYFLIE.replace(rate_model="torque")  # --task.vehicle.quad.* on top
     assert spec.task.vehicle.hover_centered_thrust  # the fast preset's other task fields are kept
-    back = runs.load_spec(runs.new_run_dir(str(tmp_path), spec))
+    back = rundir.load_spec(rundir.new_run_dir(str(tmp_path), spec))
     assert back == spec and back.task.vehicle.quad.inertia == vh.CRAZYFLIE.inertia
     _, plain = train.parse(["--vehicle", "crazyflie"])
     assert (
-        vh.vehicle_of(runs.load_spec(runs.new_run_dir(str(tmp_path), plain)).task.vehicle.quad) == "crazyflie"
+        vh.vehicle_of(rundir.load_spec(rundir.new_run_dir(str(tmp_path), plain)).task.vehicle.quad)
+        == "crazyflie"
     )
 
 
 def test_evaluate_vehicle_with_run_dir_only_if_it_is_the_runs_own(tmp_path, capsys):
-    run_dir = runs.new_run_dir(str(tmp_path), sp.preset("fast"))  # a paper-vehicle run
+    run_dir = rundir.new_run_dir(str(tmp_path), sp.preset("fast"))  # a paper-vehicle run
     assert _code(evaluate_main, [run_dir, "--vehicle", "crazyflie"]) == 2
     assert "--vehicle crazyflie does not match RUN_DIR's vehicle (paper)" in capsys.readouterr().err
     assert _code(evaluate_main, ["--controller", "geometric", "--vehicle", "x500"]) == 2

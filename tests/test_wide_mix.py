@@ -17,10 +17,10 @@ import pytest
 from test_track_families import MIN_RMS, MIN_RMS_PAPER, NUM_TEST_SEEDS, held_out_tracks, rms_distances
 from tiny import tiny
 
-from ttd3_jax import memory, runs
-from ttd3_jax import spec as sp
 from ttd3_jax.control import closed_loop as cl
-from ttd3_jax.runner import run
+from ttd3_jax.run import memory, rundir
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.loop import run
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import track_families as tf
 from ttd3_jax.sim import trajectories as tr
@@ -165,6 +165,6 @@ def test_the_wide_mixture_survives_config_json():
 def test_a_tiny_run_trains_on_the_wide_mixture(tmp_path):
     spec = tiny(epochs=1, task=tiny().task.replace(wide_mix=tf.WIDE_MIX))
     summary = run(spec, out=str(tmp_path), verbose=False)
-    (row,) = runs.read_metrics(summary["run_dir"])
+    (row,) = rundir.read_metrics(summary["run_dir"])
     assert np.isfinite(float(row["val_tracking_error"]))
-    assert runs.load_spec(summary["run_dir"]).task.tracks.wide_mix == tf.WIDE_MIX
+    assert rundir.load_spec(summary["run_dir"]).task.tracks.wide_mix == tf.WIDE_MIX

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from ttd3_jax import spec as sp
+from ttd3_jax.run import spec as sp
 
 
 def tiny(**changes) -> sp.RunSpec:
     """``fast_dpg`` at a few seconds of training: 16 envs, 2 epochs of 16 vector steps, 32-32
-    networks; ``changes`` are RunSpec or TrainConfig fields (:func:`ttd3_jax.spec.replace`).
+    networks; ``changes`` are RunSpec or TrainConfig fields (:func:`ttd3_jax.run.spec.replace`).
     Without a model horizon, an epoch stays 16 vector steps whatever ``epochs`` is, so the
     tests' runs share one compiled epoch (through the suite's compilation cache)."""
     epochs = changes.get("epochs", 2)

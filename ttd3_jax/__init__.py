@@ -2,12 +2,12 @@
 
 Layers, each importing only those above it in this list (docs/architecture.md):
 
+0. :mod:`ttd3_jax.checks`: the checks of user input;
 1. :mod:`ttd3_jax.sim`: dynamics, reference tracks, the tracking env and its config;
 2. :mod:`ttd3_jax.control`: the controller protocol, closed loop, metrics, baselines;
-3. :mod:`ttd3_jax.td3`: the trainer (config, networks, buffer, noise, losses, steps);
-4. the application: :mod:`~ttd3_jax.spec` (the run spec and presets), :mod:`~ttd3_jax.runs`,
-   :mod:`~ttd3_jax.checkpoint`, :mod:`~ttd3_jax.runner`, :mod:`~ttd3_jax.sharding`,
-   :mod:`~ttd3_jax.report`, :mod:`~ttd3_jax.cache`, :mod:`~ttd3_jax.brax_compat` (Brax's trainers and
-   registry), :mod:`~ttd3_jax.adapters` (Gymnasium and gymnax);
-5. the command lines :mod:`ttd3_jax.train` and :mod:`ttd3_jax.evaluate`.
+3. :mod:`ttd3_jax.td3`: the trainer (TD3's core, the two actor updates, networks, buffer, σ);
+4. :mod:`ttd3_jax.run`: a training run (spec, run directory, loop, checkpoint, cache, memory,
+   sharding, report);
+5. :mod:`ttd3_jax.interop`: the exported policy, Gymnasium/gymnax front ends, Brax's trainers;
+6. :mod:`ttd3_jax.cli`: the command lines, run as ``python -m ttd3_jax.train|evaluate|export``.
 """

@@ -12,7 +12,7 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 export PYTHONPATH=/tmp/site:$PWD
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
 python3 -c "import sys, jax; print(sys.version.split()[0], 'jax', jax.__version__, jax.devices())"
-python3 -c "import ttd3_jax.train, ttd3_jax.sim.env, ttd3_jax.evaluate, ttd3_jax.control.nmpc, ttd3_jax.sharding, brax.envs; print('imports ok')" 2>&1 | tail -1
+python3 -c "import ttd3_jax.train, ttd3_jax.sim.env, ttd3_jax.evaluate, ttd3_jax.control.nmpc, ttd3_jax.run.sharding, brax.envs; print('imports ok')" 2>&1 | tail -1
 echo "== env throughput"
 timeout 120 python3 benchmarks/env_throughput.py --ablate --env-last --out $OUT/env_gpu.jsonl 2>&1 | grep -v Warning  # issue 2's ratio at 1024 envs
 timeout 150 python3 benchmarks/env_throughput.py --envs 100000 --steps 1000 --repeats 3 --out $OUT/env_gpu.jsonl 2>&1 | grep -v Warning

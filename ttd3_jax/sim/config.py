@@ -8,6 +8,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+from typing import Annotated
+
+from tyro.conf import Suppress  # (a field the command line does not show)
 
 from ttd3_jax import checks
 from ttd3_jax.sim import track_families as tf
@@ -47,10 +50,12 @@ class VehicleConfig:
     """The vehicle, its integrator and the action map (D4, D5, D7, O2)."""
 
     quad: QuadParams = QuadParams()
-    rk4_substeps: int = 1
-    renormalize: bool = True
+    rk4_substeps: Annotated[int, Suppress] = 1
+    renormalize: Annotated[bool, Suppress] = True
     hover_centered_thrust: bool = False  # a0 = 0 means hover thrust
-    thrust_map_mass: float | None = None  # kg: mass whose hover thrust the action map assumes
+    thrust_map_mass: Annotated[float | None, Suppress] = (
+        None  # kg: mass whose hover thrust the action map assumes
+    )
     #   under hover_centered_thrust (None = quad.mass); set to the nominal mass when quad.mass
     #   is changed, so that a mass error stays unknown to the action map (and the controller)
 
@@ -69,14 +74,16 @@ class VehicleConfig:
 class ObservationConfig:
     """What the policy observes (O1; the parts: ``sim.observation.layout``)."""
 
-    canonical_q_obs: bool = True  # observe q with qw >= 0
-    err_ref: str = "current"
+    canonical_q_obs: Annotated[bool, Suppress] = True  # observe q with qw >= 0
+    err_ref: Annotated[str, Suppress] = "current"
     lookahead_k: int = 1  # physics steps ahead for the observed reference point
-    obs_frame: str = "world"  # "track": positions relative to p_d,k (translation invariant)
+    obs_frame: Annotated[str, Suppress] = (
+        "world"  # "track": positions relative to p_d,k (translation invariant)
+    )
     # appended to the observation (not in the paper): the last applied action (4) and the
     # leaky integral ∫(p_d − p) dt (3, m·s, leak time constant memory_tau s)
     obs_memory: bool = False
-    memory_tau: float = 1.0  # s
+    memory_tau: Annotated[float, Suppress] = 1.0  # s
     # appended last, for the critics only (the actor sees the observation without them):
     # the wind acceleration (3, m/s²) and p_d 0.5 s and 1 s after p_d,k+L, relative to it (6, m)
     obs_privileged: bool = False
@@ -86,8 +93,8 @@ class ObservationConfig:
     # observed is shifted by s = clip(gain ∫ e dt, ±limit) per axis, e = p_d,k − p where
     # |e| < band, else 0 (no wind-up while far off the track)
     ref_integral_gain: float = 0.0  # 1/s
-    ref_integral_band: float = 0.005  # m
-    ref_integral_limit: float = 0.01  # m
+    ref_integral_band: Annotated[float, Suppress] = 0.005  # m
+    ref_integral_limit: Annotated[float, Suppress] = 0.01  # m
 
     def __post_init__(self):
         f = lambda name: _where("observation", name)  # noqa: E731
@@ -117,15 +124,15 @@ class RewardConfig:
     """Reward and termination (R1-R4)."""
 
     err_cost: str = "paper"  # r_e: "paper" (e, or e² past 1 m), "squared", "log": ln(1 + e/err_scale)
-    err_scale: float = 0.02  # m, ε of err_cost="log"
+    err_scale: Annotated[float, Suppress] = 0.02  # m, ε of err_cost="log"
     rho1: float = 1.0
     rho2: float = 0.01
-    effort_weights: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)  # diag Ω
-    effort_hover_relative: bool = False  # penalise (a - a_hover) instead of a
-    terminate: bool = True
+    effort_weights: Annotated[tuple[float, float, float, float], Suppress] = (1.0, 1.0, 1.0, 1.0)  # diag Ω
+    effort_hover_relative: Annotated[bool, Suppress] = False  # penalise (a - a_hover) instead of a
+    terminate: Annotated[bool, Suppress] = True
     e_max: float = 2.0  # m
     # reward of a crash; None: rho1 r_e(e_max) action_repeat / (1 - 0.99), 400 for the paper
-    crash_penalty: float | None = None
+    crash_penalty: Annotated[float | None, Suppress] = None
 
     def __post_init__(self):
         f = lambda name: _where("reward", name)  # noqa: E731
@@ -146,9 +153,11 @@ class RewardConfig:
 class TracksConfig:
     """The tracks flown (T1-T8): which, the generators' settings, users' training tracks."""
 
-    track: str = "train"  # one of TRACK_MODES
-    los_seed: int = 0  # LOS-RT test instance when track == "los_rt"
-    generator: tr.TrackConfig = tr.TrackConfig()  # the Spiral, LOS and training-mixture generators
+    track: Annotated[str, Suppress] = "train"  # one of TRACK_MODES
+    los_seed: Annotated[int, Suppress] = 0  # LOS-RT test instance when track == "los_rt"
+    generator: Annotated[tr.TrackConfig, Suppress] = (
+        tr.TrackConfig()
+    )  # the Spiral, LOS and training-mixture generators
     # users' tracks in the training mixture (never the test or suite tracks)
     train_tracks: tuple[str, ...] = ()  # CSV files read by sim.custom_tracks.from_csv
     train_tracks_weight: float = 0.25  # probability that a training episode flies one of them
@@ -180,11 +189,11 @@ class DisturbancesConfig:
     """What the controller does not command: wind, observation noise, latency (O3)."""
 
     wind_sigma: float = 0.0  # m/s^2, stationary std of the OU acceleration
-    wind_tau: float = 0.5  # s, OU correlation time
+    wind_tau: Annotated[float, Suppress] = 0.5  # s, OU correlation time
     obs_noise_pos: float = 0.0  # m, std
     obs_noise_vel: float = 0.0  # m/s, std
     obs_noise_quat: float = 0.0  # std on each quaternion component (then renormalised)
-    action_delay: int = 0  # control steps between an action and its application (0 or 1)
+    action_delay: Annotated[int, Suppress] = 0  # control steps between an action and its application (0 or 1)
 
     def __post_init__(self):
         f = lambda name: _where("disturbances", name)  # noqa: E731
@@ -203,17 +212,26 @@ class RandomizationConfig:
     nominal vehicle's, so a controller does not learn of the draw through it."""
 
     randomize_init: bool = True
-    init_pos: float = 0.1  # m, ± per axis around p_d(0)
-    init_vel: float = 0.2  # m/s, ± per axis
-    init_tilt_deg: float = 10.0  # deg, max tilt about a random horizontal axis
-    init_yaw_deg: float = 15.0  # deg, ± yaw
+    init_pos: Annotated[float, Suppress] = 0.1  # m, ± per axis around p_d(0)
+    init_vel: Annotated[float, Suppress] = 0.2  # m/s, ± per axis
+    init_tilt_deg: Annotated[float, Suppress] = 10.0  # deg, max tilt about a random horizontal axis
+    init_yaw_deg: Annotated[float, Suppress] = 15.0  # deg, ± yaw
     mass: tuple[float, float] = (1.0, 1.0)  # factor on quad.mass
-    inertia: tuple[float, float] = (1.0, 1.0)  # factor on each axis of quad.inertia (drawn per axis)
-    thrust_max: tuple[float, float] = (1.0, 1.0)  # factor on quad.thrust_max (the flown vehicle's limit)
+    inertia: Annotated[tuple[float, float], Suppress] = (
+        1.0,
+        1.0,
+    )  # factor on each axis of quad.inertia (drawn per axis)
+    thrust_max: Annotated[tuple[float, float], Suppress] = (
+        1.0,
+        1.0,
+    )  # factor on quad.thrust_max (the flown vehicle's limit)
     thrust_gain: tuple[float, float] = (1.0, 1.0)  # thrust produced / thrust commanded (thrust-map error)
     # an "instant" vehicle flies the first_order rate model when tau_rate is randomised (same observation)
     tau_rate: tuple[float, float] = (1.0, 1.0)  # factor on quad.tau_rate (first_order time constant)
-    rate_limit: tuple[float, float] = (1.0, 1.0)  # factor on the body-rate limits rate_min, rate_max
+    rate_limit: Annotated[tuple[float, float], Suppress] = (
+        1.0,
+        1.0,
+    )  # factor on the body-rate limits rate_min, rate_max
     latency: tuple[float, float] = (0.0, 0.0)  # s, actuation latency, whole physics steps (round(x/dt))
     obs_noise: tuple[float, float] = (1.0, 1.0)  # factor on disturbances.obs_noise_* (the stds)
     pos_bias: float | tuple[float, float, float] = 0.0  # m, ± per axis: a constant bias of the observed

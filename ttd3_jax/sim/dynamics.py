@@ -11,10 +11,12 @@ is physical: collective thrust (N under ``thrust_units="newton"``, m/s^2 under
 from __future__ import annotations
 
 import math
+from typing import Annotated
 
 import jax
 import jax.numpy as jnp
 from flax import struct
+from tyro.conf import Suppress  # (a field the command line does not show)
 
 RATE_MODELS = ("instant", "first_order", "torque")
 THRUST_UNITS = ("newton", "mass_normalized")
@@ -29,18 +31,22 @@ class QuadParams:
     """
 
     mass: float = 1.5  # kg
-    gravity: float = 9.81  # m/s^2, subtracted along world z
-    thrust_min: float = 0.0  # N ("newton") or m/s^2 ("mass_normalized")
+    gravity: Annotated[float, Suppress] = 9.81  # m/s^2, subtracted along world z
+    thrust_min: Annotated[float, Suppress] = 0.0  # N ("newton") or m/s^2 ("mass_normalized")
     thrust_max: float = 20.0  # same unit as thrust_min
-    rate_min: float = -6.0  # rad/s, every body axis
-    rate_max: float = 6.0  # rad/s, every body axis
+    rate_min: Annotated[float, Suppress] = -6.0  # rad/s, every body axis
+    rate_max: Annotated[float, Suppress] = 6.0  # rad/s, every body axis
     # Only used by the "first_order" / "torque" rate models (spec D4).
-    tau_rate: float = 0.03  # s, first-order body-rate time constant
-    inertia: tuple[float, float, float] = (0.029125, 0.029125, 0.055225)  # kg m^2, diagonal of J
-    k_rate: tuple[float, float, float] = (20.0, 20.0, 10.0)  # 1/s, rate-loop gain K_w
-    torque_max: tuple[float, float, float] = (2.2, 1.3, 0.6)  # N m, |eta| bound per axis
+    tau_rate: Annotated[float, Suppress] = 0.03  # s, first-order body-rate time constant
+    inertia: Annotated[tuple[float, float, float], Suppress] = (
+        0.029125,
+        0.029125,
+        0.055225,
+    )  # kg m^2, diagonal of J
+    k_rate: Annotated[tuple[float, float, float], Suppress] = (20.0, 20.0, 10.0)  # 1/s, rate-loop gain K_w
+    torque_max: Annotated[tuple[float, float, float], Suppress] = (2.2, 1.3, 0.6)  # N m, |eta| bound per axis
     rate_model: str = struct.field(pytree_node=False, default="instant")
-    thrust_units: str = struct.field(pytree_node=False, default="newton")
+    thrust_units: Annotated[str, Suppress] = struct.field(pytree_node=False, default="newton")
 
     @classmethod
     def create(cls, **overrides) -> QuadParams:

@@ -6,8 +6,10 @@ the program takes as an argument, so a sweep over them is a ``vmap`` of one prog
 from __future__ import annotations
 
 import dataclasses
+from typing import Annotated
 
 from flax import struct
+from tyro.conf import Suppress  # (a field the command line does not show)
 
 from ttd3_jax import checks
 from ttd3_jax.td3.networks import CRITIC_ARCHS
@@ -28,7 +30,7 @@ class Hyper:
     sigma: float = 0.1  # TD3's constant exploration std
     beta: float = 0.08  # T-TD3 weight of the time term
     lam: float = 0.01  # T-TD3 decay rate per unit of t
-    u_max: float = 1.0  # action bound used by the σ formula
+    u_max: Annotated[float, Suppress] = 1.0  # action bound used by the σ formula
     target_sigma: float = 0.2  # σ̃, target-policy smoothing std
     target_clip: float = 0.1  # c, target-policy smoothing clip
     reward_scale: float = 1.0  # rewards are stored times this (keeps Q values O(1..100))
@@ -87,18 +89,20 @@ class TrainConfig:
     buffer_size: int = 1_000_000  # rounded up to a multiple of num_envs
     batch_size: int = 256
     updates_per_step: int = 20  # G, gradient updates per vector env step
-    policy_delay: int = 2  # d
+    policy_delay: Annotated[int, Suppress] = 2  # d
     # 0: the actor follows ∂Q₁/∂a (TD3, the paper).  H >= 1 (quadrotor only, not in the paper):
     # every vector step rolls the envs H steps with the current policy (plus exploration
     # noise), back-propagates Σ γ^k r_k through the simulator into the actor, and stores the
     # H·num_envs transitions for the usual TD3 critic updates.
     model_horizon: int = 0
     hidden: tuple[int, ...] = (256, 256)  # widths of the hidden layers of the actor and of each critic
-    critic_arch: str = "mlp"  # "mlp" (the paper's) | "residual" (SimBa-style LayerNorm blocks)
+    critic_arch: Annotated[str, Suppress] = (
+        "mlp"  # "mlp" (the paper's) | "residual" (SimBa-style LayerNorm blocks)
+    )
     normalize_obs: bool = False  # running mean/std normalisation of observations (nets' input)
     epochs: int = 50  # progress / eval / checkpoint points
-    noise: NoiseConfig = NoiseConfig()
-    target_noise: str = "fixed"  # A4: σ̃ fixed, or "shared_sigma" (uses the current σ)
+    noise: Annotated[NoiseConfig, Suppress] = NoiseConfig()
+    target_noise: Annotated[str, Suppress] = "fixed"  # A4: σ̃ fixed, or "shared_sigma" (uses the current σ)
     # critic targets from n-step returns (not in the paper; FastTD3 uses 3), each cut where its
     # episode ended and bootstrapped through truncation; 1 is TD3's one-step target
     n_step: int = 1

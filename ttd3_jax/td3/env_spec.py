@@ -1,5 +1,5 @@
 """What the trainer knows about an env: :class:`EnvSpec`.  The trainer imports nothing of the
-quadrotor or of Brax; :mod:`ttd3_jax.envs` builds the specs of the tracking env and the
+quadrotor or of Brax; :mod:`ttd3_jax.run.tasks` builds the specs of the tracking env and the
 Brax/MJX tasks.
 
 An :class:`EnvSpec` is a single-env object with the Brax ``reset`` / ``step`` API whose

@@ -7,7 +7,7 @@ device (a ``NamedSharding`` over a 1-D mesh, what ``jax.pmap`` takes and Flax's
 ``jax_utils.replicate`` does). Then ``brax.training.agents.ppo.train`` and ``sac.train`` run
 on :class:`~ttd3_jax.sim.env.TrackingEnv` unchanged (tests/test_brax_trainers.py)::
 
-    from ttd3_jax import brax_compat
+    from ttd3_jax.interop import brax_compat
     brax_compat.install()
     make_policy, params, _ = ppo.train(TrackingEnv(cfg), episode_length=cfg.episode_length, ...)
 

@@ -12,7 +12,8 @@ from typing import Annotated
 import dacite
 import tyro
 
-from ttd3_jax import checks, envs
+from ttd3_jax import checks
+from ttd3_jax.run import tasks
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.track_families import WIDE_MIX
 from ttd3_jax.td3.buffer import transition_bytes
@@ -55,7 +56,7 @@ class BraxSettings:
     eval_episodes: int = 10  # deterministic episodes per evaluation
 
     def __post_init__(self):
-        checks.one_of("brax.backend", self.backend, envs.BACKENDS)
+        checks.one_of("brax.backend", self.backend, tasks.BACKENDS)
         for name in ("episode_length", "eval_episodes"):
             checks.integer(f"brax.{name}", getattr(self, name), 1)
 
@@ -73,8 +74,8 @@ class RunSpec:
     num_seeds: int = 1  # seeds run side by side with vmap: seed, seed+1, ...
 
     def __post_init__(self):
-        if self.env != QUADROTOR and self.env not in envs.BRAX_ENVS:
-            raise ValueError(f"env must be {QUADROTOR!r} or one of {envs.BRAX_ENVS}, got {self.env!r}")
+        if self.env != QUADROTOR and self.env not in tasks.BRAX_ENVS:
+            raise ValueError(f"env must be {QUADROTOR!r} or one of {tasks.BRAX_ENVS}, got {self.env!r}")
         checks.integer("num_seeds", self.num_seeds, 1)
         checks.integer("seed", self.seed, 0)
         if self.seed + self.num_seeds > SEED_LIMIT:
@@ -109,9 +110,9 @@ class RunSpec:
 def env_spec(spec: RunSpec) -> EnvSpec:
     """The env the run trains on, with its evaluation."""
     if spec.is_quadrotor:
-        return envs.quadrotor(spec.task)
+        return tasks.quadrotor(spec.task)
     b = spec.brax
-    return envs.brax(spec.env, b.backend, b.episode_length, b.eval_episodes)
+    return tasks.brax(spec.env, b.backend, b.episode_length, b.eval_episodes)
 
 
 def trainer_for(spec: RunSpec) -> Trainer:

@@ -20,7 +20,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from ttd3_jax import runs
+from ttd3_jax.run import rundir
 from ttd3_jax.sim import observation
 from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim import vehicle_mix as vm
@@ -325,7 +325,7 @@ def reference_integral_spec(cfg: EnvConfig) -> dict:
 def expected_errors(run_dir: str, seed: int, epoch: int) -> dict:
     """The Σ‖e‖ this policy reached in its run's evaluation (metrics.csv), for a deployment to
     check itself against; empty when that epoch was not evaluated (the warm-up)."""
-    rows = [r for r in runs.read_metrics(run_dir) if int(r["epoch"]) == epoch and int(r["seed"]) == seed]
+    rows = [r for r in rundir.read_metrics(run_dir) if int(r["epoch"]) == epoch and int(r["seed"]) == seed]
     if not rows:
         return {}
     names = dict(spiral_rt="spiral_tracking_error", los_rt_seed00="los_tracking_error",
@@ -375,7 +375,7 @@ def vehicles_spec(cfg: EnvConfig) -> dict | None:
                 per_vehicle=per)  # fmt: skip
 
 
-def sidecar(run_dir: str, run: runs.LoadedRun, seed: int, best: bool, obs_size: int) -> dict:
+def sidecar(run_dir: str, run: rundir.LoadedRun, seed: int, best: bool, obs_size: int) -> dict:
     """``policy.json``: what the policy reads and writes, at what rate, for which vehicle, and
     every fact a re-implementation needs to fly it and reproduce its tracking error."""
     cfg = vm.pin_vehicle(run.env_config)  # with vehicles: the first (each one's: vehicles_spec)

@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import jax
 
-from ttd3_jax import spec as sp
+from ttd3_jax.run import spec as sp
 from ttd3_jax.sim.env import mixture_num_segments, num_validation_tracks
 from ttd3_jax.td3.buffer import transition_bytes
 

@@ -1,7 +1,7 @@
 """The Python loop around the compiled epochs: progress, evaluation, logs, checkpoints,
 resume.  Each epoch is one compiled call; a checkpoint of the whole train state follows it,
 so a kill loses at most the epoch in flight and a resume continues bit for bit.  What the
-loop does is logged (``logging``, INFO; :mod:`ttd3_jax.console` shows it); the per-epoch
+loop does is logged (``logging``, INFO; :mod:`ttd3_jax.cli.console` shows it); the per-epoch
 progress line is printed on stdout.
 """
 
@@ -20,12 +20,12 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
-from ttd3_jax import checkpoint as ckpt
-from ttd3_jax import memory, report, run_state, runs
-from ttd3_jax import spec as sp
-from ttd3_jax.cache import StoredProgram, program_store
 from ttd3_jax.control.paper import PAPER_TTD3, beats_paper
-from ttd3_jax.sharding import runner_fns
+from ttd3_jax.run import checkpoint as ckpt
+from ttd3_jax.run import memory, report, rundir, status
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run.cache import StoredProgram, program_store
+from ttd3_jax.run.sharding import runner_fns
 from ttd3_jax.td3.config import Hyper
 from ttd3_jax.td3.trainer import seed_keys
 
@@ -61,7 +61,7 @@ class LiveBar:
     """In-epoch progress on a terminal, redrawn in place by a host thread while the compiled
     epoch runs: the seconds so far and, from the second epoch on, the share of the previous
     epoch's time (an estimate: the compiled epoch reports nothing until it ends, so that its
-    program holds no host callback and can be stored, :class:`~ttd3_jax.cache.StoredProgram`)."""
+    program holds no host callback and can be stored, :class:`~ttd3_jax.run.cache.StoredProgram`)."""
 
     def __init__(self, epochs: int, interval_s: float = 0.25):
         self.epochs, self.interval_s, self.last_s = epochs, interval_s, None
@@ -139,13 +139,13 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", *, resume: str | None
     ``checkpoint_every`` epochs and after the last one (a kill loses at most the epochs
     since; large replay buffers make each save cost seconds).  The memory the run needs is
     checked before anything is written or compiled, and the run directory is locked while
-    it trains (:mod:`ttd3_jax.run_state`).  Returns a summary dict (run_dir, final eval,
+    it trains (:mod:`ttd3_jax.run.status`).  Returns a summary dict (run_dir, final eval,
     timings).  ``verbose``: log what the run does and print a progress line per epoch."""
     if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int) or checkpoint_every < 1:
         raise ValueError(f"checkpoint_every must be an integer >= 1, got {checkpoint_every!r}")
     log = logger.info if verbose else _quiet
     if resume is not None:
-        spec = runs.load_spec(resume)
+        spec = rundir.load_spec(resume)
         done = finished_note(resume, spec)
         if done:
             log(done)
@@ -153,7 +153,7 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", *, resume: str | None
     elif spec is None:
         raise ValueError("run() needs a RunSpec or a run directory to resume")
     else:
-        runs.check_out_dir(out)
+        rundir.check_out_dir(out)
     c = spec.train
     if c.transitions_run != c.total_transitions:
         log(f"budget: {c.transitions_run:,} of total_transitions {c.total_transitions:,} per seed "
@@ -163,8 +163,8 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", *, resume: str | None
     trainer = sp.trainer_for(spec)
     rows = getattr(trainer.env.env, "num_segments", None)  # the tracking env's table size (users' tracks)
     memory.check(spec, trainer.env.obs_size, trainer.env.action_size, track_rows=rows)  # before any write
-    run_dir = resume if resume is not None else runs.new_run_dir(out, spec)
-    with run_state.writing(run_dir, log):
+    run_dir = resume if resume is not None else rundir.new_run_dir(out, spec)
+    with status.writing(run_dir, log):
         r = _Run(spec=spec, trainer=trainer, run_dir=run_dir, resuming=resume is not None, log=log,
                  verbose=verbose, stages=stages)  # fmt: skip
         return _train(r, t, stop_after, checkpoint_every)
@@ -189,7 +189,7 @@ class _Run:
 
 def finished_note(run_dir: str, spec: sp.RunSpec) -> str | None:
     """What to say instead of resuming a run that already finished (``None``: it did not)."""
-    st = run_state.state(run_dir).get("state")
+    st = status.state(run_dir).get("state")
     folder = os.path.join(run_dir, "checkpoints")
     steps = [int(n) for n in os.listdir(folder) if n.isdigit()] if os.path.isdir(folder) else []
     legacy = st == "unknown" and os.path.isfile(os.path.join(run_dir, "eval.json"))
@@ -237,12 +237,12 @@ def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> 
         if mngr is not None:
             ckpt.close(mngr)
     if last < c.epochs:
-        run_state.mark(run_dir, "stopped", epoch=last)
+        status.mark(run_dir, "stopped", epoch=last)
         log(f"stopped after epoch {last}/{c.epochs}; continue with --resume {run_dir}")
         return {"run_dir": run_dir, "stopped_at": last}
     ev = ev if ev is not None else jax.device_get(eval_c(ts))
     summary = _finish(run_dir, spec, ev, compile_s=ep_s + ev_s, run_s=run_s, stages=stages)
-    run_state.mark(run_dir, "finished", epoch=last)
+    status.mark(run_dir, "finished", epoch=last)
     extra = ", best/ (the policy selected on the validation tracks)" if spec.is_quadrotor else ""
     log(f"results in {run_dir}: metrics.csv, eval.json, learning_curve.png, checkpoints/{extra}")
     return summary
@@ -264,7 +264,7 @@ def _fresh(r: _Run, *, mngr, init_fn, keys, hp, t: float):
     stages.warmup_s, t = _since(t)
     ckpt.save(mngr, 0, ts)  # on disk before compiling (a write alongside slows the compile)
     stages.first_checkpoint_s, t = _since(t)
-    csv_log = runs.CsvLog(os.path.join(r.run_dir, "metrics.csv"))
+    csv_log = rundir.CsvLog(os.path.join(r.run_dir, "metrics.csv"))
     r.log(f"run dir {r.run_dir}")
     init_s = stages.init_lower_s + stages.init_compile_s
     r.log(f"init + warm-up ({c.warmup_steps * c.num_envs} transitions per seed): compile {init_s:.1f} s, "
@@ -274,7 +274,7 @@ def _fresh(r: _Run, *, mngr, init_fn, keys, hp, t: float):
 
 def _stored(spec: sp.RunSpec, fns: tuple) -> tuple:
     """The runner's functions with their traced programs kept beside the compilation cache
-    (:class:`~ttd3_jax.cache.StoredProgram`), so a warm launch skips tracing; keyed on the spec
+    (:class:`~ttd3_jax.run.cache.StoredProgram`), so a warm launch skips tracing; keyed on the spec
     without its traced values and on the contents of the files it names.  Not over several
     devices (``fns`` as they are then)."""
     store = program_store()
@@ -319,8 +319,8 @@ def _resume(run_dir: str, *, init_fn, keys, hp, place, log):
         m = ckpt.manager(run_dir)
         m.delete(epoch)
         m.close()
-    csv_log = runs.CsvLog(os.path.join(run_dir, "metrics.csv"), keep_through_epoch=start)
-    log(f"resumed {run_dir} at epoch {start}/{runs.load_spec(run_dir).train.epochs}")
+    csv_log = rundir.CsvLog(os.path.join(run_dir, "metrics.csv"), keep_through_epoch=start)
+    log(f"resumed {run_dir} at epoch {start}/{rundir.load_spec(run_dir).train.epochs}")
     return place(state), start, csv_log
 
 
@@ -331,7 +331,7 @@ class EpochLoop:
     spec: sp.RunSpec
     run_dir: str
     mngr: object  # the writer's orbax checkpoint manager
-    csv_log: runs.CsvLog
+    csv_log: rundir.CsvLog
     epoch_c: object  # compiled epoch program
     eval_c: object  # compiled evaluation program
     live: LiveBar | None  # the in-epoch bar on a terminal
@@ -369,7 +369,7 @@ def _epochs(loop: EpochLoop, ts, start: int, last: int):
             rows.append(row)
         csv_log.write(rows)
         if spec.is_quadrotor:
-            runs.select_best(run_dir, spec, epoch, ev, ts)
+            rundir.select_best(run_dir, spec, epoch, ev, ts)
         if tb is not None:
             for row in rows:
                 for k, v in row.items():
@@ -396,10 +396,10 @@ def _finish(run_dir: str, spec: sp.RunSpec, ev, *, compile_s: float, run_s: floa
         summary["paper_ttd3"] = PAPER_TTD3
         summary["beats_paper"] = [beats_paper(s) for s in seed_evals]
         # the policy chosen on the validation tracks (best/; evaluate it with --best)
-        summary["selected"] = runs.selected_policies(run_dir)
+        summary["selected"] = rundir.selected_policies(run_dir)
         summary["selected_beats_paper"] = [beats_paper(s) for s in summary["selected"]]
     with open(os.path.join(run_dir, "eval.json"), "w") as fh:
         json.dump(report.json_safe(summary), fh, indent=2)  # strict JSON: nan and inf become null
     title = f"{spec.algo.upper()} on {spec.env} ({os.path.basename(os.path.abspath(run_dir))})"
-    report.plot_learning_curve(run_dir, runs.read_metrics(run_dir), title)
+    report.plot_learning_curve(run_dir, rundir.read_metrics(run_dir), title)
     return summary

@@ -1,4 +1,4 @@
-"""A run directory on disk: ``config.json`` (the whole :class:`~ttd3_jax.spec.RunSpec`;
+"""A run directory on disk: ``config.json`` (the whole :class:`~ttd3_jax.run.spec.RunSpec`;
 everything that reads a run rebuilds it from this alone), ``metrics.csv`` (one row per epoch
 and seed), ``checkpoints/`` (orbax, the whole train state), ``best/`` (each seed's policy
 selected on the validation tracks), ``eval.json`` and ``learning_curve.png``.
@@ -17,13 +17,13 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from ttd3_jax import checkpoint as ckpt
-from ttd3_jax import run_state
-from ttd3_jax import spec as sp
-from ttd3_jax.cli_checks import writable_dir
+from ttd3_jax.checks import writable_dir
 from ttd3_jax.control.closed_loop import policy_controller
 from ttd3_jax.control.evaluator import Build, index
-from ttd3_jax.sharding import per_seed
+from ttd3_jax.run import checkpoint as ckpt
+from ttd3_jax.run import spec as sp
+from ttd3_jax.run import status
+from ttd3_jax.run.sharding import per_seed
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.td3 import networks
 from ttd3_jax.td3.trainer import Trainer, act, initial_actor, seed_keys
@@ -71,7 +71,7 @@ def find_run(path: str) -> tuple[str, str | None]:
     if not found:
         msg = f"no {CONFIG} in {path!r} or its subdirectories: not a ttd3_jax run directory"
         raise FileNotFoundError(msg)
-    states = {e.name: run_state.state(e.path) for e in found}
+    states = {e.name: status.state(e.path) for e in found}
     failed = [e for e in found if states[e.name]["state"] == "failed"]
     usable = [e for e in found if e not in failed]
     notes = [f"skipped {e.name} (failed: {states[e.name].get('reason', '?')})" for e in failed]

@@ -151,7 +151,7 @@ def per_seed(fn: Callable, num_seeds: int, in_axes: tuple) -> Callable:
 
 
 def runner_fns(trainer, keys: jax.Array, hp, mesh: Mesh | None = None):
-    """``(init_fn, epoch_fn, eval_fn, place)`` for :func:`ttd3_jax.runner.run`: the trainer's
+    """``(init_fn, epoch_fn, eval_fn, place)`` for :func:`ttd3_jax.run.loop.run`: the trainer's
     functions over the seeds of ``keys`` (one per seed).  On one device: ``jit(per_seed(...))``,
     and ``place`` puts a restored (host) state on the device uncommitted, as a fresh one is (a
     committed state would lower to another program, missing the compilation cache).  On several
