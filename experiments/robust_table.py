@@ -54,7 +54,7 @@ from ttd3_jax.run import rundir
 from ttd3_jax.run import spec as sp
 from ttd3_jax.run.report import device_description, json_safe
 from ttd3_jax.sim import trajectories as tr
-from ttd3_jax.sim.config import EVAL_CRASH_M, FIELD_GROUP, make_config
+from ttd3_jax.sim.config import EVAL_CRASH_M, make_config
 from ttd3_jax.sim.env import TrackingEnv
 
 SUITE = "generalization"
@@ -116,16 +116,6 @@ def fmt_value(v: float, spec: str = ".1f") -> str:
 # --------------------------------------------------------------------------- a saved NMPC file
 
 
-def _with_added_fields(env: dict) -> dict:
-    """``env`` (an env config as JSON) with each task field added to the run spec after it
-    was written (``spec.ADDED_FIELDS``) at the value that reproduces what it did then."""
-    for (part, name), (_, value) in sp.ADDED_FIELDS.items():
-        group = FIELD_GROUP.get(name)
-        if part == "task" and isinstance(env.get(group), dict) and name not in env[group]:
-            env = {**env, group: {**env[group], name: value}}
-    return env
-
-
 def _first_difference(a, b, path: str = "") -> str | None:
     if isinstance(a, dict) and isinstance(b, dict):
         for k in sorted(set(a) | set(b), key=str):
@@ -141,9 +131,8 @@ def _first_difference(a, b, path: str = "") -> str | None:
 def nmpc_file_mismatch(d, num_seeds: int) -> str | None:
     """Why a saved ``evaluate --controller nmpc --robustness --json`` result ``d`` cannot
     stand for the NMPC here (one line), or ``None`` when it provably can: written by the
-    default NMPC (no options) on the paper preset's nominal config (today's, fields added
-    since then at their neutral values), its conditions today's by name and description,
-    each with Spiral-RT and LOS-RT seeds 1..``num_seeds``."""
+    default NMPC (no options) on the paper preset's nominal config (today's), its conditions
+    today's by name and description, each with Spiral-RT and LOS-RT seeds 1..``num_seeds``."""
     if not isinstance(d, dict) or "robustness" not in d:
         return "it holds no robustness results (write it with evaluate --controller nmpc --robustness --json)"
     if d.get("controller") != "nmpc":
@@ -157,7 +146,7 @@ def nmpc_file_mismatch(d, num_seeds: int) -> str | None:
     paper = json.loads(json.dumps(json_safe(dataclasses.asdict(make_config("paper")))))
     if not isinstance(env, dict):
         return "it does not record its env config"
-    where = _first_difference(_with_added_fields(env), paper)
+    where = _first_difference(env, paper)
     if where:
         return f"its env config differs from the paper preset's in {where}"
     descriptions = d.get("robustness_conditions")

@@ -50,6 +50,7 @@ def check_policy(make_policy, params):
         assert bool(jnp.all(jnp.abs(a) <= 1.0)), a
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_ppo_trains_the_tracking_env():
     steps, seen = [], []
     make_policy, params, metrics = ppo.train(
@@ -67,6 +68,7 @@ def test_ppo_trains_the_tracking_env():
     check_policy(make_policy, params)
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_sac_trains_the_tracking_env():
     steps = []
     make_policy, params, metrics = sac.train(

@@ -142,6 +142,7 @@ def _track_csv(path, amplitude: float) -> None:
         fh.write("t,x,y,z\n" + "\n".join(rows) + "\n")
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_a_training_csv_edited_in_place_is_traced_again_and_trains_on_its_new_contents(tmp_path, monkeypatch):
     """The issue's sequence: a run on a training-track CSV, the CSV edited in place (same
     length), the same run again: it traces again and equals plain jit on the new track."""

@@ -63,6 +63,7 @@ def test_notebooks_are_committed_without_outputs():
                 assert not cell.outputs and cell.execution_count is None, f"{path.name} has outputs"
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_sweep_notebook_tiny(tmp_path, jupyter_path, monkeypatch):
     out = tmp_path / "out"
     execute("sweep.ipynb", {"TTD3_NB_SIZE": "tiny", "TTD3_NB_OUT": str(out)}, jupyter_path, monkeypatch)

@@ -24,7 +24,7 @@ def test_report_labels_each_run_finished_or_unfinished_at_its_transitions(tmp_pa
     table = (tmp_path / "table.md").read_text()
     for r in rows:  # a run is finished iff its eval.json is committed
         assert r["finished"] == os.path.exists(os.path.join(RUNS, r["run"], "eval.json"))
-        spec = pb.runs.load_spec(os.path.join(RUNS, r["run"]))
+        spec = pb.rundir.load_spec(os.path.join(RUNS, r["run"]))
         if r["finished"]:  # the budget rounded down to whole epochs
             assert r["transitions"] == spec.train.transitions_run > 0.99 * r["budget"]
         else:
@@ -50,8 +50,8 @@ def test_selection_from_metrics_matches_the_trainers_record(tmp_path):
         copy = tmp_path / d
         shutil.copytree(os.path.join(RUNS, d), copy)
         os.remove(copy / "eval.json")
-        recorded = pb.selected_epochs(os.path.join(RUNS, d), pb.runs.read_metrics(os.path.join(RUNS, d)))
-        derived = pb.selected_epochs(str(copy), pb.runs.read_metrics(str(copy)))
+        recorded = pb.selected_epochs(os.path.join(RUNS, d), pb.rundir.read_metrics(os.path.join(RUNS, d)))
+        derived = pb.selected_epochs(str(copy), pb.rundir.read_metrics(str(copy)))
         assert recorded.keys() == derived.keys()
         for seed, rec in recorded.items():
             assert derived[seed]["epoch"] == rec["epoch"]

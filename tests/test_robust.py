@@ -9,6 +9,7 @@ import os
 
 import jax
 import numpy as np
+import pytest
 
 from ttd3_jax.run import rundir
 from ttd3_jax.run import spec as sp
@@ -40,6 +41,7 @@ def test_the_robust_preset_randomises_the_plant_and_the_tracks():
     assert masses[0] != masses[1] and all(lo * nominal <= m <= hi * nominal for m in masses)
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_a_tiny_robust_run_trains_and_selects_on_the_wide_validation_tracks(tmp_path):
     spec = sp.preset("robust", **TINY)
     summary = run(spec, out=str(tmp_path), verbose=False)

@@ -74,7 +74,7 @@ def test_the_committed_nmpc_file_is_accepted_for_its_own_seeds_only():
     rt = _script()
     with open(NMPC_JSON) as fh:
         d = json.load(fh)
-    assert rt.nmpc_file_mismatch(d, 20) is None  # written before wide_mix: filled at its neutral value
+    assert rt.nmpc_file_mismatch(d, 20) is None
     assert rt.nmpc_file_mismatch(d, 5) == "its LOS-RT seeds are 1..20, not 1..5 (--robustness-seeds 5)"
 
 

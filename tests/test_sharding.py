@@ -48,6 +48,7 @@ def run_sharded_check(*args: str) -> list[str]:
     return lines
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_sharded_sweeps_on_four_cpu_devices():
     """A sweep of 4 (seeds x beta) on 4 devices equals ``jit(vmap)``, with padding."""
     run_sharded_check("sweep")

@@ -139,7 +139,7 @@ def test_config_json_round_trip_keeps_every_field():
     assert sp.from_dict({**d, "hp": {**d["hp"], "u_max": 1}}).hp.u_max == 1.0  # an int where a float goes
     assert isinstance(sp.from_dict({**d, "hp": {**d["hp"], "u_max": 1}}).hp.u_max, float)
     with pytest.raises(ValueError, match=r"fields \"train\", \"hp\", .* are missing"):  # no defaults
-        sp.from_dict({"env": "quadrotor"})
+        sp.from_dict({"format": sp.CONFIG_FORMAT, "env": "quadrotor"})
 
 
 @pytest.mark.parametrize(

@@ -329,6 +329,7 @@ def test_vmapped_seed_equals_seed_run_alone(horizon):
         np.testing.assert_allclose(mb[k][1], ma[k][0], rtol=1e-4, atol=1e-6, err_msg=k)
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_sweep_over_hyperparameters_is_one_vmapped_program():
     s = tiny(epochs=1)
     t = sp.trainer_for(s)
