@@ -178,6 +178,52 @@ def test_a_config_of_another_format_gets_one_line_naming_it(tmp_path, capsys):
         assert "format 9" in message and "Traceback" not in message and len(message.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize(
+    "main, args, message",
+    [
+        (evaluate.main, ["--json", "{run}/config.json"], "is config.json of the run"),
+        (evaluate.main, ["--json", "{run}/metrics.csv"], "is metrics.csv of the run"),
+        (evaluate.main, ["--json", "{run}/checkpoints/x.json"], "is inside checkpoints/ of the run"),
+        (evaluate.main, ["--plots", "{run}/best"], "is inside best/ of the run"),
+        (export.main, ["--out", "{run}/checkpoints/4", "--no-onnx"], "is inside checkpoints/ of the run"),
+        (export.main, ["--out", "{run}/best/policy", "--no-onnx"], "is inside best/ of the run"),
+    ],
+)
+def test_readers_never_write_into_a_runs_own_files(tmp_path, capsys, main, args, message):
+    """evaluate and export refuse an output over a run's config.json, metrics.csv, state.json
+    (...) or inside its checkpoints/ or best/, before anything loads, and leave it as it was."""
+    run_dir = rundir.new_run_dir(str(tmp_path), tiny())
+    before = open(os.path.join(run_dir, "config.json")).read()
+    argv = [run_dir, *(a.format(run=run_dir) for a in args)]
+    assert message in refused(main, argv + (["--no-timing"] if main is evaluate.main else []), capsys)
+    assert open(os.path.join(run_dir, "config.json")).read() == before
+    assert not os.path.exists(os.path.join(run_dir, "metrics.csv"))
+    assert not os.path.exists(os.path.join(run_dir, "best"))
+
+
+def test_robustness_seeds_that_cannot_fit_are_refused_before_anything_compiles(capsys):
+    err = refused(evaluate.main, ["--controller", "hover", "--robustness", "--robustness-seeds", "100000000",
+                                  "--no-timing"], capsys)  # fmt: skip
+    assert re.search(r"--robustness-seeds 100000000 needs about [\d.e+]+ GiB .* fits", err), err
+
+
+def test_a_fifo_track_is_refused_not_read(tmp_path, capsys):
+    fifo = tmp_path / "track.csv"
+    os.mkfifo(fifo)  # opening it for reading would block until a writer comes
+    err = refused(evaluate.main, ["--controller", "hover", "--track", str(fifo), "--no-timing"], capsys)
+    assert "not a regular file (a directory, FIFO or device)" in err
+
+
+def test_a_training_track_far_longer_than_an_episode_is_refused(tmp_path, capsys):
+    """An 83 MB training CSV made every env keep a 3,000,000-row table: 100x the reference an
+    episode flies is the most a training track may last."""
+    path = str(tmp_path / "long.csv")
+    ct.to_csv(ct.step((0.0, 0.0, 0.3), 400.0, name="long"), path)
+    err = refused(train.main, [*TINY_CLI, "--train-tracks", path, "--out", str(tmp_path / "runs")], capsys)
+    assert f"{path} lasts 400 s, but an episode flies" in err and "cut it to at most" in err
+    assert not (tmp_path / "runs").exists()  # before the run directory
+
+
 def test_every_committed_run_spec_loads():
     found = glob.glob(os.path.join(HERE, "..", "results", "**", "config.json"), recursive=True)
     assert len(found) >= 8

@@ -17,7 +17,7 @@ from tiny import TINY_CLI
 
 from ttd3_jax.cli.train import main
 from ttd3_jax.run import checkpoint as ckpt
-from ttd3_jax.run import rundir
+from ttd3_jax.run import rundir, status
 from ttd3_jax.run import spec as sp
 from ttd3_jax.run.cache import default_compile_cache, use_compile_cache
 
@@ -47,6 +47,12 @@ def test_help_lists_the_options_a_user_sets(capsys):
         (["--task.reward.e-max", "-1"], "EnvConfig.reward.e_max must be a finite number > 0"),
         (["--task.reward.err-cost", "cubic"], "err_cost must be one of"),
         (["--task.tracks.track", "spiral_rt"], "Unrecognized options: --task.tracks.track"),  # internal
+        (["--task.observation.lookahead-k", "100000"], r"lookahead_k must be <= episode_steps \(3000"),
+        (
+            ["--task.tracks.train-tracks-weight", "0.5"],
+            "train_tracks_weight must be 0.25 without train_tracks",
+        ),
+        (["--task.observation.preview-s", *map(str, range(1, 2001))], r"preview_s must be .*2,000 values\)"),
         (
             ["--preset", "mujoco", "--task.reward.e-max", "1.5"],
             r"--task.\* sets the quadrotor env; env 'hopper' has none",
@@ -71,7 +77,8 @@ def test_bad_input_is_refused_before_anything_compiles(argv, message, capsys):
         code = e.code
     assert code == 2
     err = capsys.readouterr().err
-    assert re.search(message, err), err
+    flat = " ".join(re.sub(r"[│|]", " ", err).split())  # tyro wraps its messages in a box
+    assert re.search(message, flat), err
     assert "Traceback" not in err
 
 
@@ -120,6 +127,60 @@ def test_sigkill_then_resume_finishes_the_run(tmp_path):
     assert f"XLA compilation cache: {os.environ['JAX_COMPILATION_CACHE_DIR']}" in res.stdout
     assert [int(r["epoch"]) for r in rundir.read_metrics(str(run_dir))] == [1, 2, 3, 4]
     assert os.path.isfile(run_dir / "eval.json")
+
+
+def _train_until_checkpoint(out, *extra):
+    """A tiny CLI run of 60 short epochs, once its first epoch is checkpointed: ``(proc, run_dir)``."""
+    cmd = [sys.executable, "-m", "ttd3_jax.train", *TINY_CLI, "--epochs", "60", "--total-transitions",
+           str(16 * (8 + 2 * 60)), *extra, "--out", str(out)]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        dirs = list(out.glob("*/checkpoints/1")) if out.exists() else []
+        if dirs:
+            return proc, dirs[0].parent.parent
+        time.sleep(0.05)
+    raise AssertionError(proc.communicate()[1] if proc.poll() is not None else "no checkpoint in time")
+
+
+def test_ctrl_c_stops_the_run_after_its_epoch_and_resume_out_continues_it(tmp_path):
+    """Ctrl-C is a normal way to stop: one line saying where, the epoch it finished
+    checkpointed, no traceback, state ``stopped``; ``--resume OUT`` then finishes the run."""
+    out = tmp_path / "runs"
+    proc, run_dir = _train_until_checkpoint(out)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 130, stdout + stderr
+    assert "Traceback" not in stdout + stderr and "KeyboardInterrupt" not in stdout + stderr
+    state = status.state(str(run_dir))
+    assert state["state"] == "stopped" and state["reason"] == "SIGINT", state
+    epoch = state["epoch"]
+    assert 1 <= epoch < 60
+    line = f"stopped by SIGINT after epoch {epoch}/60 (checkpointed); continue with python -m ttd3_jax.train"
+    assert f"{line} --resume {run_dir}" in stdout
+    mngr = ckpt.manager(str(run_dir))
+    assert ckpt.latest_epoch(mngr) == epoch  # the epoch it finished is on disk
+    mngr.close()
+    res = subprocess.run([sys.executable, "-m", "ttd3_jax.train", "--resume", str(out)],
+                         capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert f"resumed {run_dir} at epoch {epoch}/60" in res.stdout
+    assert [int(r["epoch"]) for r in rundir.read_metrics(str(run_dir))] == list(range(1, 61))
+    assert status.state(str(run_dir))["state"] == "finished"
+
+
+def test_a_second_sigterm_stops_at_once_keeping_the_newest_checkpoint(tmp_path):
+    out = tmp_path / "runs"
+    proc, run_dir = _train_until_checkpoint(out)
+    proc.send_signal(signal.SIGTERM)
+    time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 130 and "Traceback" not in stdout + stderr, stdout + stderr
+    state = status.state(str(run_dir))
+    assert state["state"] == "stopped" and state["reason"] == "SIGTERM", state
+    lines = stderr.strip().splitlines()
+    assert lines[-1].startswith("stopped by SIGTERM") or "stopped by SIGTERM after epoch" in stdout, stderr
 
 
 def test_compile_cache_default_and_bad_directory(tmp_path, monkeypatch):

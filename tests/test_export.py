@@ -17,6 +17,7 @@ import pytest
 from experiment_scripts import experiment
 from tiny import tiny
 
+from ttd3_jax.cli.evaluate import main as evaluate_main
 from ttd3_jax.cli.export import main as export_main
 from ttd3_jax.control import closed_loop as cl
 from ttd3_jax.interop import policy as pe
@@ -168,3 +169,31 @@ def test_numpy_forward_matches_the_onnx_graph_without_normalisation():
     sess = ort.InferenceSession(pe.onnx_model(p).SerializeToString(), providers=["CPUExecutionProvider"])
     obs = random_obs(32)
     np.testing.assert_allclose(sess.run(["action"], {"obs": obs})[0], pe.forward(p, obs), atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "edit, shapes",
+    [
+        (lambda d: d["train"].update(hidden=[16, 16]), "of shape (1, 32), but config.json gives (1, 16)"),
+        (lambda d: d.update(num_seeds=2), "of shape (1, 32), but config.json gives (2, 32)"),
+    ],
+)
+def test_a_hand_edited_config_is_named_by_evaluate_and_export_not_a_traceback(exported, tmp_path, capsys,
+                                                                               edit, shapes):  # fmt: skip
+    """A config.json whose sizes no longer match the run's checkpoints (hidden, num_seeds) is
+    refused in one line by export and evaluate (export wrote a policy and evaluate raised a
+    flax traceback or IndexError before); no older checkpoint is tried in its place."""
+    run_dir = str(tmp_path / "run")
+    shutil.copytree(exported[0], run_dir)
+    path = os.path.join(run_dir, "config.json")
+    d = json.load(open(path))
+    edit(d)
+    json.dump(d, open(path, "w"))
+    for main, args in (
+        (export_main, ["--out", str(tmp_path / "p"), "--no-onnx"]),
+        (evaluate_main, ["--no-timing"]),
+    ):
+        assert main([run_dir, *args]) == 2
+        err = capsys.readouterr().err
+        assert shapes in err and "was it edited?" in err and "Traceback" not in err, err
+    assert not (tmp_path / "p").exists()

@@ -142,12 +142,20 @@ def test_resume_of_a_finished_run_does_nothing(tmp_path):
     "argv, field",
     [
         (["--hidden", "65536", "65536"], "--hidden 65536 65536"),
-        (["--task.observation.lookahead-k", "1000000000"], "--task.observation.lookahead-k 1000000000"),
         (["--task.episode-steps", "2000000000"], "--task.episode-steps 2000000000"),
         (["--updates-per-step", "1000000000"], "--updates-per-step 1000000000"),
+        (["--num-seeds", "20000"], "--num-seeds 20000"),  # the rollout grows with it: blamed, not the horizon
+        (
+            ["--num-envs", "3000000", "--buffer-size", "3000000", "--total-transitions", "400000000"],
+            "--num-envs 3000000",
+        ),
+        (
+            ["--num-envs", "100000000", "--model-horizon", "1", "--total-transitions", "400000000"],
+            "--num-envs 100000000",
+        ),  # not --task.episode-steps, which was never set
     ],
 )
-def test_the_four_memory_cases_are_refused_with_the_figure_and_the_field(argv, field):
+def test_each_memory_case_is_refused_with_the_figure_and_the_field_set_largest(argv, field):
     _, spec = train.parse(["--total-transitions", "20000", "--epochs", "2", *argv])
     trainer = sp.trainer_for(spec)
     with pytest.raises(ValueError) as e:

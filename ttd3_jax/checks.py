@@ -20,7 +20,16 @@ from typing import NoReturn
 
 
 def fail(field: str, allowed: str, value) -> NoReturn:
-    raise ValueError(f"{field} must be {allowed}, got {value!r}")
+    raise ValueError(f"{field} must be {allowed}, got {shown(value)}")
+
+
+def shown(value, limit: int = 200) -> str:
+    """``repr(value)``, cut to about ``limit`` characters (a 2,000-value list stays one line)."""
+    text = repr(value)
+    if len(text) <= limit:
+        return text
+    count = f", {len(value):,} values" if isinstance(value, tuple | list) else ""
+    return f"{text[: limit - 40]}... ({len(text):,} characters{count})"
 
 
 def is_integer(v) -> bool:

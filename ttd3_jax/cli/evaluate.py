@@ -36,7 +36,7 @@ from ttd3_jax.control.evaluator import (
 from ttd3_jax.control.nmpc import NMPCConfig
 from ttd3_jax.control.paper import PAPER
 from ttd3_jax.control.robustness import ROBUSTNESS_DESCRIPTIONS, evaluate_robustness
-from ttd3_jax.run import report, rundir
+from ttd3_jax.run import memory, report, rundir
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import EVAL_CRASH_M, EVAL_PROTOCOL_FIELDS, PRESETS, EnvConfig, make_config
@@ -97,6 +97,11 @@ def check_args(ap: argparse.ArgumentParser, args) -> dict:
                             ("--robustness-seeds", args.robustness_seeds, 1)):  # fmt: skip
         if value < lo:
             ap.error(f"{flag} must be >= {lo}, got {value}")
+    if args.robustness:
+        try:  # Spiral-RT and the LOS-RT seeds of a condition fly in one batch
+            memory.check_flights(args.robustness_seeds + 1, "--robustness-seeds", args.robustness_seeds)
+        except ValueError as e:
+            ap.error(str(e))
     options = {k: getattr(args, a) for k, a in _NMPC_OPTIONS if getattr(args, a) is not None}
     try:
         check_output_paths(args)
@@ -148,8 +153,12 @@ def check_output_paths(args) -> None:
     """``--json`` and ``--plots`` can be written (before the evaluation, not after it)."""
     if args.json is not None:
         writable_file("--json", args.json)
+        rundir.refuse_run_files("--json", args.json)
     if args.plots is not None:
         writable_dir("--plots", args.plots)
+        rundir.refuse_run_files("--plots", args.plots, folder=True)
+    elif args.json is not None:  # the plots go beside the JSON file
+        rundir.refuse_run_files("--json", os.path.dirname(os.path.abspath(args.json)), folder=True)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -42,6 +42,7 @@ def check_args(ap: argparse.ArgumentParser, args) -> None:
         ap.error(f"--epoch must be >= 0, got {args.epoch}")
     try:
         writable_dir("--out", args.out)
+        rundir.refuse_run_files("--out", args.out, folder=True)
     except ValueError as e:
         ap.error(str(e))
     there = [f for f in pe.FILES if os.path.exists(os.path.join(args.out, f))]

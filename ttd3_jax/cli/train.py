@@ -143,10 +143,19 @@ def main(argv: list[str] | None = None) -> int:
         cache = use_compile_cache(known.compile_cache)
         note = " (--compile-cache none turns it off)" if cache else ""
         print(f"XLA compilation cache: {cache or 'off'}{note}")
-        if spec is None:
-            run(resume=known.resume)
-        else:
-            run(spec, out=known.out)
+        with status.Stop().installed() as stop:  # Ctrl-C / SIGTERM: stop after the epoch in progress
+            if spec is None:
+                out = run(resume=known.resume, stop=stop)
+            else:
+                out = run(spec, out=known.out, stop=stop)
+        if out.get("stopped_by"):
+            return 130  # stopped by a signal, resumable (the loop said where and how)
+    except status.RunStopped as e:  # a second Ctrl-C
+        print(f"{e}", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:  # before the run directory was written
+        print("stopped by SIGINT before the run started; nothing was written", file=sys.stderr)
+        return 130
     except Exception as e:  # one line with what to do, no traceback
         message = failure_message(e)  # first: a full disk reaches us as orbax's ValueError too
         if message is not None:

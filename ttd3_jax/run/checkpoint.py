@@ -237,10 +237,33 @@ def restore(mngr: ocp.CheckpointManager, epoch: int, like):
     check_files(mngr, epoch)
     abstract = jax.tree.map(lambda x: np.zeros((1,) if _empty(x) else x.shape, x.dtype), like)
     out = mngr.restore(epoch, args=ocp.args.StandardRestore(abstract))
+    check_shapes(out, abstract, f"checkpoint {epoch}")
     expected = digests(mngr).get(epoch)
     if expected is not None and digest(out) != expected:
         raise CorruptCheckpoint(f"its contents do not match the digest written with it ({DIGESTS})")
     return jax.tree.map(lambda o, x: np.zeros(x.shape, x.dtype) if _empty(x) else o, out, like)
+
+
+_EDITED = "config.json does not describe this run (was it edited?); put back the one it was trained with"
+
+
+class SpecMismatch(ValueError):
+    """A saved state whose shapes are not those its run's ``config.json`` gives: the file was
+    edited (or belongs to another run); no older checkpoint would load either."""
+
+
+def check_shapes(saved, like, what: str) -> None:
+    """Refuse (:class:`SpecMismatch`) ``saved`` arrays whose shapes differ from ``like``'s,
+    naming the first leaf that differs."""
+    got = jax.tree_util.tree_flatten_with_path(saved)[0]
+    want = jax.tree_util.tree_leaves(like)
+    for (path, a), b in zip(got, want, strict=False):
+        if np.shape(a) != np.shape(b):
+            name = jax.tree_util.keystr(path)
+            raise SpecMismatch(f"{what} holds {name} of shape {np.shape(a)}, but config.json gives "
+                               f"{np.shape(b)}: {_EDITED}")  # fmt: skip
+    if len(got) != len(want):
+        raise SpecMismatch(f"{what} holds {len(got)} arrays, but config.json gives {len(want)}: {_EDITED}")
 
 
 def _reason(e: Exception) -> str:
@@ -298,6 +321,8 @@ def _restore_newest(run_dir: str, like, epoch: int | None, note):
         )  # a fresh manager each time: orbax's is not usable after a failure
         try:
             state = restore(m, e, like)
+        except SpecMismatch:  # not damage: every checkpoint was saved with the run's real config
+            raise
         except Exception as err:  # orbax raises many kinds (ValueError, OSError, KeyError, ...)
             skipped.append((e, _reason(err)))
             continue
@@ -370,6 +395,8 @@ def load_policy(run_dir: str, seed: int, like):
     if expected is not None and _bytes_digest(data) != expected:
         raise CorruptCheckpoint(f"{path} does not match the digest in best/best.json (the file is damaged)")
     try:
-        return serialization.from_bytes(like, data)
+        out = serialization.from_bytes(like, data)
     except Exception as e:
         raise ValueError(f"{path} does not load ({_reason(e)})") from None
+    check_shapes(out, like, path)
+    return out

@@ -131,7 +131,8 @@ def check_finite(m: dict, ts, epoch: int, run_dir: str, mngr) -> None:
 
 
 def run(spec: sp.RunSpec | None = None, out: str = "runs", *, resume: str | None = None,
-        verbose: bool = True, stop_after: int | None = None, checkpoint_every: int = 1) -> dict:  # fmt: skip
+        verbose: bool = True, stop_after: int | None = None, checkpoint_every: int = 1,
+        stop: status.Stop | None = None) -> dict:  # fmt: skip
     """Train ``spec`` into a new run directory under ``out``, or continue the run in
     ``resume`` from its newest checkpoint that loads (a run without one starts over; a
     finished run is left as it is).  ``stop_after`` ends this call after that many epochs,
@@ -140,7 +141,10 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", *, resume: str | None
     since; large replay buffers make each save cost seconds).  The memory the run needs is
     checked before anything is written or compiled, and the run directory is locked while
     it trains (:mod:`ttd3_jax.run.status`).  Returns a summary dict (run_dir, final eval,
-    timings).  ``verbose``: log what the run does and print a progress line per epoch."""
+    timings).  ``verbose``: log what the run does and print a progress line per epoch.
+    ``stop`` (the CLI's Ctrl-C, :class:`~ttd3_jax.run.status.Stop`): once requested, the run
+    stops after the epoch in progress, checkpointed, as ``stop_after`` does; a second request
+    raises :class:`~ttd3_jax.run.status.RunStopped` (the run keeps its newest checkpoint)."""
     if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int) or checkpoint_every < 1:
         raise ValueError(f"checkpoint_every must be an integer >= 1, got {checkpoint_every!r}")
     log = logger.info if verbose else _quiet
@@ -166,8 +170,20 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", *, resume: str | None
     run_dir = resume if resume is not None else rundir.new_run_dir(out, spec)
     with status.writing(run_dir, log):
         r = _Run(spec=spec, trainer=trainer, run_dir=run_dir, resuming=resume is not None, log=log,
-                 verbose=verbose, stages=stages)  # fmt: skip
-        return _train(r, t, stop_after, checkpoint_every)
+                 verbose=verbose, stages=stages, stop=stop)  # fmt: skip
+        try:
+            return _train(r, t, stop_after, checkpoint_every)
+        except KeyboardInterrupt:  # a second Ctrl-C: _train has closed its checkpoint writer
+            reason = stop.signal if stop is not None and stop.signal else "SIGINT"
+            raise status.RunStopped(run_dir, _newest_checkpoint(run_dir), reason) from None
+
+
+def _newest_checkpoint(run_dir: str) -> int | None:
+    m = ckpt.manager(run_dir, read_only=True)
+    try:
+        return m.latest_step()
+    finally:
+        m.close()
 
 
 def _quiet(message: str) -> None:
@@ -185,6 +201,7 @@ class _Run:
     log: Callable[[str], None]  # the module logger's ``info``, or ``_quiet``
     verbose: bool  # the progress line and the in-epoch bar
     stages: Stages
+    stop: status.Stop | None  # Ctrl-C: stop after the epoch in progress
 
 
 def finished_note(run_dir: str, spec: sp.RunSpec) -> str | None:
@@ -218,7 +235,10 @@ def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> 
                 log(f"{run_dir} has no checkpoint (it stopped before its first): starting it over")
             mngr = ckpt.manager(run_dir, asynchronous=True)
             ts, start, csv_log, t = _fresh(r, mngr=mngr, init_fn=init_fn, keys=keys, hp=hp, t=t)
-        epoch_c, stages.epoch_lower_s, stages.epoch_compile_s, t = _program(epoch_fn, (ts, hp), t)
+        if start < c.epochs:  # a run whose last epoch is checkpointed only needs its final evaluation
+            epoch_c, stages.epoch_lower_s, stages.epoch_compile_s, t = _program(epoch_fn, (ts, hp), t)
+        else:
+            epoch_c, stages.epoch_lower_s, stages.epoch_compile_s = None, 0.0, 0.0
         eval_c, stages.eval_lower_s, stages.eval_compile_s, t = _program(
             eval_fn, (jax.eval_shape(lambda t: t, ts),), t
         )
@@ -231,15 +251,20 @@ def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> 
             f"{c.updates_per_step} updates per epoch")  # fmt: skip
         last = c.epochs if stop_after is None else min(c.epochs, start + stop_after)
         loop = EpochLoop(spec=spec, run_dir=run_dir, mngr=mngr, csv_log=csv_log, epoch_c=epoch_c,
-                         eval_c=eval_c, live=live, verbose=r.verbose, every=checkpoint_every)  # fmt: skip
+                         eval_c=eval_c, live=live, verbose=r.verbose, every=checkpoint_every,
+                         stop=r.stop)  # fmt: skip
         ts, ev, run_s, stages.epochs = _epochs(loop, ts, start, last)
+        if r.stop is not None and r.stop.requested():
+            last = start + len(stages.epochs)  # the epochs this launch finished, the last checkpointed
     finally:
         if mngr is not None:
             ckpt.close(mngr)
     if last < c.epochs:
-        status.mark(run_dir, "stopped", epoch=last)
-        log(f"stopped after epoch {last}/{c.epochs}; continue with --resume {run_dir}")
-        return {"run_dir": run_dir, "stopped_at": last}
+        by = r.stop.signal if r.stop is not None and r.stop.requested() else None
+        status.mark(run_dir, "stopped", epoch=last, **({"reason": by} if by else {}))
+        log(f"stopped{f' by {by}' if by else ''} after epoch {last}/{c.epochs} (checkpointed); continue "
+            f"with python -m ttd3_jax.train --resume {run_dir}")  # fmt: skip
+        return {"run_dir": run_dir, "stopped_at": last, "stopped_by": by}
     ev = ev if ev is not None else jax.device_get(eval_c(ts))
     summary = _finish(run_dir, spec, ev, compile_s=ep_s + ev_s, run_s=run_s, stages=stages)
     status.mark(run_dir, "finished", epoch=last)
@@ -337,6 +362,7 @@ class EpochLoop:
     live: LiveBar | None  # the in-epoch bar on a terminal
     verbose: bool  # print the progress line
     every: int  # epochs between checkpoints
+    stop: status.Stop | None  # once requested: no further epoch
 
 
 def _epochs(loop: EpochLoop, ts, start: int, last: int):
@@ -346,6 +372,10 @@ def _epochs(loop: EpochLoop, ts, start: int, last: int):
     tb = report.tensorboard(run_dir)
     run_s, ev, timings = 0.0, None, []
     for epoch in range(start + 1, last + 1):
+        if loop.stop is not None and loop.stop.requested():
+            if epoch > start + 1 and (epoch - 1) % every != 0:  # the last finished epoch, not yet saved
+                ckpt.save(mngr, epoch - 1, ts, wait=False)
+            break
         te = time.perf_counter()
         steps_before = float(np.mean(np.asarray(ts.n_tr)))
         if live is not None:

@@ -1,7 +1,13 @@
 """What a run will hold in memory, estimated from its spec before anything compiles or is
 written: the replay buffers, the networks with their targets and Adam moments, the track
-tables, the scanned updates' working set and the model-based rollout.  Each estimate
-names the run-spec field that drives it, so a refusal can say what to lower.
+tables, the training envs' step, the scanned updates' working set and the model-based
+rollout.  Each estimate names the run-spec fields that drive it; a refusal blames the one a
+user set largest against its usual size (``--num-seeds 20000``, not the rollout's horizon).
+
+The per-env constants were measured with XLA:CPU's ``memory_analysis()`` of the compiled
+epoch and init programs (the ``practical`` env, 10 RK4 steps per action, jax 0.10.2): the
+model-based rollout keeps about 3.7 KB per env and rollout step for its gradient, and one
+vectorised env step with its resets about 12 KB per env.
 """
 
 from __future__ import annotations
@@ -20,14 +26,29 @@ F32 = 4
 NETWORK_COPIES = 4  # parameters, targets, Adam's two moments
 TRACK_ROW_BYTES = 9 * F32  # one segment row: position, velocity, acceleration (3 each)
 PER_UPDATE_BYTES = 3 * F32 + 2 * 4  # per scanned update: its 3 metrics and its PRNG key
-ROLLOUT_STATE_BYTES = 64 * F32  # per env and rollout step kept for the model-based gradient
+ROLLOUT_STEP_BYTES = 4096  # per env and rollout step kept for the model-based gradient (3.7 KB measured)
+ENV_STEP_BYTES = 12 * 1024  # per training env: one vectorised step with its resets (12.3 KB measured)
+# per evaluation flight (one track of 3000 steps, its closed loop and its per-step trace): the
+# peak RSS of `python -m ttd3_jax.evaluate --controller hover --robustness --robustness-seeds N`
+# grew by 390 KB per LOS-RT seed from N = 20 to N = 1000 (653 MB to 1,036 MB)
+FLIGHT_BYTES = 400_000
+# the size of each field a user sets, as the presets use it: a refusal blames the field that
+# exceeds its usual size most
+USUAL = {"num_seeds": 3, "num_envs": 64, "buffer_size": 1_000_000, "hidden": 256, "updates_per_step": 20,
+         "model_horizon": 50, "task.episode_steps": 3000, "task.observation.lookahead_k": 50,
+         "task.tracks.train_tracks": 1}  # fmt: skip
 
 
 class Need(NamedTuple):
     what: str
     bytes: int
-    field: str  # the run-spec field that drives it
-    value: object  # that field's value
+    fields: tuple[tuple[str, object, float], ...]  # (run-spec field, its value, its size) driving it
+
+    @property
+    def blamed(self) -> tuple[str, object]:
+        """The driving field that exceeds its usual size (:data:`USUAL`) most, and its value."""
+        name, value, size = max(self.fields, key=lambda f: f[2] / USUAL.get(f[0], 1))
+        return name, value
 
 
 def available_memory_bytes() -> int | None:
@@ -69,36 +90,38 @@ def track_bytes(spec: sp.RunSpec, rows: int | None = None) -> int:
     return spec.num_seeds * tracks * rows * TRACK_ROW_BYTES
 
 
-def _track_field(spec: sp.RunSpec, rows: int | None) -> tuple[str, object]:
-    """The field that sets the track tables' size, and its value."""
+def _track_rows_field(spec: sp.RunSpec, rows: int | None) -> tuple[str, object, float]:
+    """The field that sets the track tables' rows, its value and its size."""
     t = spec.task
     if t.tracks.train_tracks and rows is not None and rows > mixture_num_segments(t):
-        return "task.tracks.train_tracks", " ".join(t.tracks.train_tracks)
+        return "task.tracks.train_tracks", " ".join(t.tracks.train_tracks), rows / mixture_num_segments(t)
     if t.observation.lookahead_k > t.episode_steps:
-        return "task.observation.lookahead_k", t.observation.lookahead_k
-    return "task.episode_steps", t.episode_steps
+        return "task.observation.lookahead_k", t.observation.lookahead_k, t.observation.lookahead_k
+    return "task.episode_steps", t.episode_steps, t.episode_steps
 
 
 def needs(spec: sp.RunSpec, obs_size: int, action_size: int, track_rows: int | None = None) -> list[Need]:
-    """Every large allocation of ``spec``'s run, with the field that drives it (``track_rows``:
+    """Every large allocation of ``spec``'s run, with the fields that drive it (``track_rows``:
     the env's track-table rows, see :func:`track_bytes`)."""
-    c = spec.train
+    c, n = spec.train, spec.num_seeds
+    seeds, envs = ("num_seeds", n, n), ("num_envs", c.num_envs, c.num_envs)
+    hidden = ("hidden", " ".join(map(str, c.hidden)), max(c.hidden))
     out = [
-        Need("the replay buffers", sp.buffer_bytes(spec, obs_size, action_size), "buffer_size",
-             c.buffer_size),
-        Need("the networks and optimiser state", network_bytes(spec, obs_size, action_size), "hidden",
-             " ".join(map(str, c.hidden))),
-        Need("the scanned updates' working set", spec.num_seeds * c.updates_per_step * PER_UPDATE_BYTES,
-             "updates_per_step", c.updates_per_step),
+        Need("the replay buffers", sp.buffer_bytes(spec, obs_size, action_size),
+             (seeds, ("buffer_size", c.buffer_size, c.buffer_size))),
+        Need("the networks and optimiser state", network_bytes(spec, obs_size, action_size), (seeds, hidden)),
+        Need("the scanned updates' working set", n * c.updates_per_step * PER_UPDATE_BYTES,
+             (seeds, ("updates_per_step", c.updates_per_step, c.updates_per_step))),
+        Need("the training envs' step", n * c.num_envs * (ENV_STEP_BYTES + 4 * F32 * obs_size),
+             (seeds, envs)),
     ]  # fmt: skip
     if spec.is_quadrotor:
-        out.append(Need("the track tables", track_bytes(spec, track_rows), *_track_field(spec, track_rows)))
-        rollout = (
-            c.model_horizon * c.num_envs * (ROLLOUT_STATE_BYTES + transition_bytes(obs_size, action_size))
-        )
-        out.append(
-            Need("the model-based rollout", spec.num_seeds * rollout, "model_horizon", c.model_horizon)
-        )
+        out.append(Need("the track tables", track_bytes(spec, track_rows),
+                        (seeds, envs, _track_rows_field(spec, track_rows))))  # fmt: skip
+        per_step = ROLLOUT_STEP_BYTES + transition_bytes(obs_size, action_size)
+        rollout = c.model_horizon * c.num_envs * per_step
+        horizon = ("model_horizon", c.model_horizon, c.model_horizon)
+        out.append(Need("the model-based rollout", n * rollout, (seeds, envs, horizon)))
     return out
 
 
@@ -115,9 +138,21 @@ def check(spec: sp.RunSpec, obs_size: int, action_size: int, free: int | None = 
     free = available_memory_bytes() if free is None else free
     if free is not None and total > FRACTION * free:
         big = max(parts, key=lambda p: p.bytes)
+        field, value = big.blamed
         raise ValueError(
             f"the run needs about {gib(total)} of memory, {gib(big.bytes)} of it for {big.what} (--"
-            f"{big.field.replace('_', '-')} {big.value}), but only {gib(free)} is free; lower {big.field}"
-            f"{' or num_seeds' * (spec.num_seeds > 1)}"
+            f"{field.replace('_', '-')} {value}), but only {gib(free)} is free; lower {field}"
         )
+    return total
+
+
+def check_flights(flights: int, flag: str, value: int, free: int | None = None) -> int:
+    """Bytes of ``flights`` evaluation flights run in one batch; refuses (``ValueError``
+    naming ``flag``) a batch that would take over ``FRACTION`` of free memory."""
+    total = flights * FLIGHT_BYTES
+    free = available_memory_bytes() if free is None else free
+    if free is not None and total > FRACTION * free:
+        most = max(1, int(FRACTION * free // FLIGHT_BYTES) - 1)
+        raise ValueError(f"{flag} {value} needs about {gib(total)} of memory for its flights (one batch), "
+                         f"but only {gib(free)} is free; {flag} {most} fits")  # fmt: skip
     return total

@@ -83,6 +83,32 @@ def find_run(path: str) -> tuple[str, str | None]:
     return usable[-1].path, "\n".join(notes) or None
 
 
+# what training writes in a run directory, which the readers (evaluate, export) never write over
+OWN_FILES = (CONFIG, "metrics.csv", status.STATE, status.LOCK, "eval.json", "learning_curve.png",
+             ckpt.DIGESTS, ckpt.FILES)  # fmt: skip
+OWN_FOLDERS = ("checkpoints", "best", "tb")
+
+
+def refuse_run_files(flag: str, path: str, folder: bool = False) -> None:
+    """Refuse an output ``path`` (a file, or a ``folder`` to write in) that is one of a run
+    directory's own files or lies in its ``checkpoints/``, ``best/`` or ``tb/``, naming the
+    flag: a reader never writes into what training wrote."""
+    real = os.path.realpath(path)
+    head, name = os.path.split(real)
+    if not folder and name in OWN_FILES and os.path.isfile(os.path.join(head, CONFIG)):
+        raise ValueError(f"{flag} {path!r} is {name} of the run {head}: evaluate and export never write over "
+                         "a run's own files; pick another path")  # fmt: skip
+    probe = real
+    while True:
+        parent = os.path.dirname(probe)
+        if parent == probe:
+            return
+        if os.path.basename(probe) in OWN_FOLDERS and os.path.isfile(os.path.join(parent, CONFIG)):
+            raise ValueError(f"{flag} {path!r} is inside {os.path.basename(probe)}/ of the run {parent}: "
+                             "evaluate and export never write there; pick another path")  # fmt: skip
+        probe = parent
+
+
 def load_spec(run_dir: str) -> sp.RunSpec:
     """A run's spec from its ``config.json``; errors name the file and what is wrong."""
     path = os.path.join(run_dir, CONFIG)

@@ -5,9 +5,13 @@ run or ``--resume``); a second writer is refused with the holder's name, and a l
 process is gone (same host, dead pid) is taken over with a note.  The lock is created with
 its contents in one step (a hard link of a finished file), so no reader sees it half written.
 
-``state.json`` says how the run stands: ``running``, ``stopped`` (after ``stop_after``
-epochs, resumable), ``failed`` (with the reason) or ``finished``.  A ``running`` run whose
-lock holder is gone was killed: it resumes from its newest checkpoint.
+``state.json`` says how the run stands: ``running``, ``stopped`` (by Ctrl-C, SIGTERM or
+``stop_after``: resumable), ``failed`` (with the reason) or ``finished``.  A ``running`` run
+whose lock holder is gone was killed: it resumes from its newest checkpoint.
+
+Ctrl-C is a normal way to stop (:class:`Stop`): the first SIGINT or SIGTERM asks the loop to
+stop after the epoch in progress, which it checkpoints; a second stops at once, and the run
+keeps its newest checkpoint (:class:`RunStopped`).
 """
 
 from __future__ import annotations
@@ -17,7 +21,10 @@ import json
 import logging
 import os
 import shutil
+import signal
 import socket
+import sys
+import threading
 from contextlib import contextmanager
 
 LOCK = "lock.json"
@@ -28,6 +35,51 @@ logger = logging.getLogger(__name__)
 
 class RunLocked(ValueError):
     """Another live process is training this run."""
+
+
+class RunStopped(Exception):
+    """A run stopped at once by a second Ctrl-C or SIGTERM: ``epoch`` is its newest checkpoint
+    (``None``: none yet), ``reason`` the signal."""
+
+    def __init__(self, run_dir: str, epoch: int | None, reason: str):
+        self.run_dir, self.epoch, self.reason = run_dir, epoch, reason
+        kept = f"its newest checkpoint is epoch {epoch}" if epoch is not None else "it has no checkpoint yet"
+        how = "--resume" if epoch is not None else "--resume (it starts over) or --remove"
+        super().__init__(
+            f"stopped by {reason}; {kept}; continue with python -m ttd3_jax.train {how} {run_dir}"
+        )
+
+
+class Stop:
+    """A request to stop training, set by SIGINT or SIGTERM while :meth:`installed`: the first
+    signal asks the epoch loop to stop after the epoch in progress (``signal`` names it); a
+    second raises ``KeyboardInterrupt`` at once."""
+
+    def __init__(self):
+        self.signal: str | None = None
+
+    def requested(self) -> bool:
+        return self.signal is not None
+
+    def _handle(self, signum, frame):
+        if self.signal is not None:
+            raise KeyboardInterrupt
+        self.signal = signal.Signals(signum).name
+        print(f"{self.signal}: stopping after the epoch in progress (again to stop at once, keeping the "
+              "newest checkpoint)", file=sys.stderr, flush=True)  # fmt: skip
+
+    @contextmanager
+    def installed(self):
+        """Handle SIGINT and SIGTERM in this block (the main thread only; elsewhere, nothing)."""
+        if threading.current_thread() is not threading.main_thread():
+            yield self
+            return
+        before = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield self
+        finally:
+            for s, handler in before.items():
+                signal.signal(s, handler)
 
 
 def _now() -> str:
@@ -132,8 +184,9 @@ def state(run_dir: str) -> dict:
 
 @contextmanager
 def writing(run_dir: str, log=None):
-    """Hold ``run_dir``'s lock while training it: the state reads ``running``, and ``failed``
-    with the reason if the body raises (Ctrl-C included); the lock is released at the end.
+    """Hold ``run_dir``'s lock while training it: the state reads ``running``, ``stopped`` if the
+    body raises :class:`RunStopped`, and ``failed`` with the reason if it raises anything else;
+    the lock is released at the end.
     ``log`` says that a stale lock was taken over (default: this module's logger, INFO)."""
     note = acquire(run_dir)
     if note:
@@ -141,6 +194,9 @@ def writing(run_dir: str, log=None):
     try:
         mark(run_dir, "running", pid=os.getpid())
         yield
+    except RunStopped as e:
+        mark(run_dir, "stopped", epoch=e.epoch, reason=e.reason)
+        raise
     except BaseException as e:
         reason = " ".join(str(e).split())[:300] or type(e).__name__
         try:

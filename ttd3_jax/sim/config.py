@@ -386,6 +386,12 @@ def _validate(c: EnvConfig) -> None:
         checks.integer(f"EnvConfig.{name}", getattr(c, name), 1)
     for group, kind in GROUPS.items():
         checks.instance(f"EnvConfig.{group}", getattr(c, group), kind)
+    if c.observation.lookahead_k > c.episode_steps:
+        checks.fail("EnvConfig.observation.lookahead_k", f"<= episode_steps ({c.episode_steps}: a reference "
+                    "point past the episode's end)", c.observation.lookahead_k)  # fmt: skip
+    if not c.tracks.train_tracks and c.tracks.train_tracks_weight != TracksConfig.train_tracks_weight:
+        why = f"{TracksConfig.train_tracks_weight} without train_tracks (the share of episodes that fly them)"
+        checks.fail("EnvConfig.tracks.train_tracks_weight", why, c.tracks.train_tracks_weight)
     if c.observation.obs_memory and c.disturbances.action_delay:
         raise ValueError(
             "EnvConfig.observation.obs_memory needs disturbances.action_delay 0 (the delayed env keeps "

@@ -23,6 +23,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import math
+import os
 from collections.abc import Callable
 
 import jax
@@ -125,6 +126,8 @@ def from_function(f: Callable[[np.ndarray], np.ndarray], duration_s: float, *, d
 
 def from_csv(path: str, *, dt: float = 1e-3) -> CustomTrack:
     """A track from a CSV file (see the module docstring); errors name the file."""
+    if os.path.exists(path) and not os.path.isfile(path):  # a FIFO or a device would block the read
+        raise ValueError(f"cannot read track file {path!r}: not a regular file (a directory, FIFO or device)")
     try:  # utf-8-sig: a byte-order mark (as Excel writes) is not part of the first column's name
         with open(path, newline="", encoding="utf-8-sig") as fh:  # (line number, cells); blank, "#" skipped
             rows = [

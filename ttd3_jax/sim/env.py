@@ -199,6 +199,22 @@ def error_cost(cfg: EnvConfig, e: jax.Array) -> jax.Array:
     return jnp.where(e * e <= 1.0, e, e * e)
 
 
+LONG_TRACK = 100  # a training track may last this many times the reference an episode flies
+
+
+def _training_track(c: EnvConfig, path: str) -> tr.Track:
+    """A user's training track, refused when it lasts over :data:`LONG_TRACK` times the reference
+    an episode flies: every env keeps the longest track's whole table, so the rest only costs
+    memory and speed."""
+    track = ct.from_csv(path, dt=c.dt)
+    flown = c.horizon_steps * c.dt
+    if track.duration_s > LONG_TRACK * flown:
+        raise ValueError(f"task.tracks.train_tracks: {path} lasts {track.duration_s:,.0f} s, but an episode "
+                         f"flies {flown:.2f} s of reference and every training env keeps the whole track: "
+                         f"cut it to at most {LONG_TRACK * flown:,.0f} s")  # fmt: skip
+    return track.track()
+
+
 class TrackingEnv(Env):
     """Quadrotor trajectory tracking; ``reset(rng) -> State``, ``step(state, a) -> State``.
 
@@ -218,7 +234,7 @@ class TrackingEnv(Env):
             self._n_seg = tr.num_segments_for(c.horizon_steps, c.tracks.generator.los_segment_steps)
         self._user = None  # users' training tracks, stacked, with the mixture's table size
         if c.tracks.track == "train" and c.tracks.train_tracks:
-            user = [ct.from_csv(p, dt=c.dt).track() for p in c.tracks.train_tracks]
+            user = [_training_track(c, p) for p in c.tracks.train_tracks]
             self._mix_n, self._n_seg = self._n_seg, max(self._n_seg, *(t.num_segments for t in user))
             self._user = jax.tree.map(lambda *x: jnp.stack(x), *(ct.pad(t, self._n_seg, c.dt) for t in user))
         self._effort_w = tuple(float(w) for w in c.reward.effort_weights)
