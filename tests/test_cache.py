@@ -58,6 +58,7 @@ def train_one_epoch(keys, hp, init_fn, epoch_fn, eval_fn, lower):
     return first, digest((ts, m)), digest(ev_c(ts))
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_a_stored_program_runs_the_bits_of_jit_and_a_warm_load_does_not_trace(tmp_path):
     spec = tiny(model_horizon=2)
     keys, plain, _, _ = programs(spec, str(tmp_path))
@@ -183,6 +184,7 @@ def test_no_store_under_key_reuse_checks_or_without_the_compilation_cache():
         jax.config.update("jax_enable_compilation_cache", True)
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_the_runner_loads_one_seeds_programs_for_another_seed_and_learning_rate(tmp_path, monkeypatch):
     """The runner's key leaves out the seed and the hyperparameter values (traced
     arguments): seed 1 with another learning rate loads seed 0's programs and runs what

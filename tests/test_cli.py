@@ -169,6 +169,7 @@ def test_ctrl_c_stops_the_run_after_its_epoch_and_resume_out_continues_it(tmp_pa
     assert status.state(str(run_dir))["state"] == "finished"
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_a_second_sigterm_stops_at_once_keeping_the_newest_checkpoint(tmp_path):
     out = tmp_path / "runs"
     proc, run_dir = _train_until_checkpoint(out)

@@ -338,6 +338,7 @@ def test_sensed_controller_on_the_track_frame_equals_the_true_state_controller()
 # --------------------------------------------------------------------------- robustness
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_robustness_returns_finite_statistics():
     cfg = make_config("paper", episode_steps=300)
     nominal = cfg.for_eval("los_rt")

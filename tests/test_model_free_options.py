@@ -94,6 +94,7 @@ def test_actor_reads_only_its_slice_and_residual_critic_shapes():
     assert q["params"]["Dense_0"]["kernel"].shape == (9, 16)  # width hidden[0]
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_one_epoch_with_every_option_trains_and_stays_finite():
     s = tiny(critic_arch="residual", n_step=3)
     s = sp.replace(s, task=s.task.replace(obs_memory=True, obs_privileged=True, err_cost="log"))

@@ -273,6 +273,7 @@ def test_box_qp_solves_random_box_qps(seed):
     assert obj(z.astype(np.float64)) <= obj(z_ref) + 1e-5 * abs(obj(z_ref))
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_tune_nmpc_on_the_wide_validation_tracks(tmp_path, capsys):
     """``--wide`` tunes on the robust preset's validation bank (its first family: the paper
     mixture's dynamics tracks), and --num-tracks is bounded by that bank's 18."""

@@ -21,6 +21,7 @@ from ttd3_jax.sim.env import (
 )
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_the_committed_files_equal_the_generator():
     want = pt.protocol_tracks()
     assert sorted(os.listdir(pt.OUT)) == sorted(f"{n}.csv" for n in want)

@@ -35,6 +35,7 @@ def assert_same_rows(ra, rb):
             assert x[k] == pytest.approx(y[k], rel=1e-6, abs=1e-7), k
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_resume_equals_uninterrupted(tmp_path):
     """The model-based actor (the default preset's path); the paper's actor update is resumed
     exactly in the checkpoint-fallback test below."""
@@ -214,6 +215,7 @@ def test_csv_log_drops_rows_past_checkpoint(tmp_path):
         assert fh.read().count("\n") == 2  # header + epoch 1
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_policy_selected_on_validation_tracks_is_saved_and_reloads(tmp_path):
     """Each seed keeps the policy of its epoch with the lowest validation error (spec T8,
     never the test tracks); eval.json names that epoch with its test figures, and

@@ -314,7 +314,8 @@ def test_transitions_store_true_next_obs_and_terminated_apart_from_truncation():
     assert set(np.unique(term)) <= {0.0, 1.0}
 
 
-@pytest.mark.parametrize("horizon", [0, pytest.param(4, marks=pytest.mark.slow)])
+@pytest.mark.slow  # .ci/run runs it (-m slow)
+@pytest.mark.parametrize("horizon", [0, 4])
 def test_vmapped_seed_equals_seed_run_alone(horizon):
     both, alone = tiny(num_seeds=2, seed=3, model_horizon=horizon), tiny(seed=4, model_horizon=horizon)
     tb, ta = sp.trainer_for(both), sp.trainer_for(alone)

@@ -102,6 +102,7 @@ def test_validation_uses_the_wide_bank_and_the_memory_estimate_counts_it():
     assert memory.track_bytes(wide) - memory.track_bytes(spec) == 8 * n * memory.TRACK_ROW_BYTES
 
 
+@pytest.mark.slow  # .ci/run runs it (-m slow)
 def test_val_tracking_error_is_read_on_the_wide_validation_tracks():
     """The only figure a policy is selected on: the mean over the wide bank with wide_mix set,
     over the paper's 10 validation tracks without (short episodes, a hover controller)."""
