@@ -270,6 +270,16 @@ def test_a_checkpoint_killed_before_its_file_hashes_loads_on_its_content_digest_
     assert ckpt.restore_newest(run_dir, small_state(0), note=notes.append)[0] == 1 and len(notes) == 1
 
 
+def test_a_junk_file_hash_record_is_named_as_the_cause(tmp_path):
+    run_dir = str(tmp_path)
+    saved_twice(run_dir)
+    (tmp_path / ckpt.FILES).write_text("{not json")
+    notes = []
+    assert ckpt.restore_newest(run_dir, small_state(0), note=notes.append)[0] == 2
+    assert notes == [f"checkpoint 2 has no file hashes ({ckpt.FILES} is damaged); its contents match their "
+                     "digest, so it is loaded"]  # fmt: skip
+
+
 def test_saving_again_an_epoch_that_was_deleted_drops_its_old_file_hashes(tmp_path, monkeypatch):
     run_dir = str(tmp_path)
     saved_twice(run_dir)

@@ -86,6 +86,18 @@ def _record(run_dir_or_mngr, name: str) -> dict:
         return {}  # a damaged record verifies nothing; every checkpoint then loads unverified
 
 
+def _record_damaged(run_dir: str, name: str) -> bool:
+    """Whether record ``name`` exists but does not read as ``{epoch: entry}``."""
+    try:
+        with open(os.path.join(run_dir, name)) as fh:
+            {int(k): v for k, v in json.load(fh).items()}
+    except FileNotFoundError:
+        return False
+    except (ValueError, AttributeError, OSError):
+        return True
+    return False
+
+
 def _write_record(run_dir: str, name: str, record: dict) -> None:
     _atomic_write(os.path.join(run_dir, name), json.dumps({str(k): v for k, v in sorted(record.items())}))
 
@@ -329,8 +341,10 @@ def _restore_newest(run_dir: str, like, epoch: int | None, note):
         finally:
             m.close()
         if e not in file_digests(run_dir) and e in digests(run_dir):
-            note(f"checkpoint {e} has no file hashes ({FILES}; the run stopped before they were written); "
-                 "its contents match their digest, so it is loaded")  # fmt: skip
+            damaged = _record_damaged(run_dir, FILES)
+            why = f"{FILES} is damaged" if damaged else f"{FILES}; the run stopped before they were written"
+            note(f"checkpoint {e} has no file hashes ({why}); its contents match their digest, so it is "
+                 "loaded")  # fmt: skip
         return e, state, skipped
     why = "; ".join(f"epoch {e}: {r}" for e, r in skipped) or "none saved"
     raise FileNotFoundError(f"no checkpoint in {mngr.directory} loads ({why})")
