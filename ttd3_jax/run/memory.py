@@ -5,9 +5,9 @@ rollout.  Each estimate names the run-spec fields that drive it; a refusal blame
 user set largest against its usual size (``--num-seeds 20000``, not the rollout's horizon).
 
 The per-env constants were measured with XLA:CPU's ``memory_analysis()`` of the compiled
-epoch and init programs (the ``practical`` env, 10 RK4 steps per action, jax 0.10.2): the
-model-based rollout keeps about 3.7 KB per env and rollout step for its gradient, and one
-vectorised env step with its resets about 12 KB per env.
+epoch and init programs (``python benchmarks/memory_calibration.py``; the ``practical`` env,
+10 RK4 steps per action, jax 0.10.2): the model-based rollout keeps about 3.7 KB per env and
+rollout step for its gradient, and one vectorised env step with its resets about 12 KB per env.
 """
 
 from __future__ import annotations
