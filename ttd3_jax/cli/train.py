@@ -9,7 +9,8 @@
     python -m ttd3_jax.train --remove runs/RUN_DIR    # delete a run killed before its first checkpoint
     python -m ttd3_jax.train --help                   # every option, its default and units
 
-Exit status: 0 done, 2 bad input (the message names it), 3 the run diverged.
+Exit status: 0 done, 1 a full disk or no memory, 2 bad input (the message names it), 3 the run
+diverged, 130 stopped by Ctrl-C or SIGTERM (resumable).
 """
 
 from __future__ import annotations

@@ -169,13 +169,13 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", *, resume: str | None
     memory.check(spec, trainer.env.obs_size, trainer.env.action_size, track_rows=rows)  # before any write
     run_dir = resume if resume is not None else rundir.new_run_dir(out, spec)
     with status.writing(run_dir, log):
+        stop = stop or status.Stop()  # (never requested unless the CLI installed it)
         r = _Run(spec=spec, trainer=trainer, run_dir=run_dir, resuming=resume is not None, log=log,
                  verbose=verbose, stages=stages, stop=stop)  # fmt: skip
         try:
             return _train(r, t, stop_after, checkpoint_every)
         except KeyboardInterrupt:  # a second Ctrl-C: _train has closed its checkpoint writer
-            reason = stop.signal if stop is not None and stop.signal else "SIGINT"
-            raise status.RunStopped(run_dir, _newest_checkpoint(run_dir), reason) from None
+            raise status.RunStopped(run_dir, _newest_checkpoint(run_dir), stop.signal or "SIGINT") from None
 
 
 def _newest_checkpoint(run_dir: str) -> int | None:
@@ -201,7 +201,7 @@ class _Run:
     log: Callable[[str], None]  # the module logger's ``info``, or ``_quiet``
     verbose: bool  # the progress line and the in-epoch bar
     stages: Stages
-    stop: status.Stop | None  # Ctrl-C: stop after the epoch in progress
+    stop: status.Stop  # Ctrl-C: stop after the epoch in progress
 
 
 def finished_note(run_dir: str, spec: sp.RunSpec) -> str | None:
@@ -254,13 +254,13 @@ def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> 
                          eval_c=eval_c, live=live, verbose=r.verbose, every=checkpoint_every,
                          stop=r.stop)  # fmt: skip
         ts, ev, run_s, stages.epochs = _epochs(loop, ts, start, last)
-        if r.stop is not None and r.stop.requested():
+        if r.stop.requested():
             last = start + len(stages.epochs)  # the epochs this launch finished, the last checkpointed
     finally:
         if mngr is not None:
             ckpt.close(mngr)
     if last < c.epochs:
-        by = r.stop.signal if r.stop is not None and r.stop.requested() else None
+        by = r.stop.signal
         status.mark(run_dir, "stopped", epoch=last, **({"reason": by} if by else {}))
         log(f"stopped{f' by {by}' if by else ''} after epoch {last}/{c.epochs} (checkpointed); continue "
             f"with python -m ttd3_jax.train --resume {run_dir}")  # fmt: skip
@@ -274,11 +274,7 @@ def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> 
 
 
 def _has_checkpoint(run_dir: str) -> bool:
-    m = ckpt.manager(run_dir, read_only=True)
-    try:
-        return bool(m.all_steps())
-    finally:
-        m.close()
+    return _newest_checkpoint(run_dir) is not None
 
 
 def _fresh(r: _Run, *, mngr, init_fn, keys, hp, t: float):
@@ -362,7 +358,7 @@ class EpochLoop:
     live: LiveBar | None  # the in-epoch bar on a terminal
     verbose: bool  # print the progress line
     every: int  # epochs between checkpoints
-    stop: status.Stop | None  # once requested: no further epoch
+    stop: status.Stop  # once requested: no further epoch
 
 
 def _epochs(loop: EpochLoop, ts, start: int, last: int):
@@ -372,7 +368,7 @@ def _epochs(loop: EpochLoop, ts, start: int, last: int):
     tb = report.tensorboard(run_dir)
     run_s, ev, timings = 0.0, None, []
     for epoch in range(start + 1, last + 1):
-        if loop.stop is not None and loop.stop.requested():
+        if loop.stop.requested():
             if epoch > start + 1 and (epoch - 1) % every != 0:  # the last finished epoch, not yet saved
                 ckpt.save(mngr, epoch - 1, ts, wait=False)
             break
