@@ -72,8 +72,9 @@ def _run_dir(mngr: ocp.CheckpointManager) -> str:
     return os.path.dirname(str(mngr.directory))
 
 
-def _record(run_dir_or_mngr, name: str) -> dict:
-    """``{epoch: entry}`` of record ``name`` in the run directory (empty when missing)."""
+def _read_record(run_dir_or_mngr, name: str) -> dict | None:
+    """``{epoch: entry}`` of record ``name`` in the run directory: empty when missing, ``None``
+    when the file does not read as a record (damaged)."""
     run_dir = (
         _run_dir(run_dir_or_mngr) if isinstance(run_dir_or_mngr, ocp.CheckpointManager) else run_dir_or_mngr
     )
@@ -83,19 +84,17 @@ def _record(run_dir_or_mngr, name: str) -> dict:
     except FileNotFoundError:
         return {}
     except (ValueError, AttributeError):
-        return {}  # a damaged record verifies nothing; every checkpoint then loads unverified
+        return None
+
+
+def _record(run_dir_or_mngr, name: str) -> dict:
+    """:func:`_read_record`, with a damaged record read as empty: it verifies nothing, and every
+    checkpoint then loads unverified."""
+    return _read_record(run_dir_or_mngr, name) or {}
 
 
 def _record_damaged(run_dir: str, name: str) -> bool:
-    """Whether record ``name`` exists but does not read as ``{epoch: entry}``."""
-    try:
-        with open(os.path.join(run_dir, name)) as fh:
-            {int(k): v for k, v in json.load(fh).items()}
-    except FileNotFoundError:
-        return False
-    except (ValueError, AttributeError, OSError):
-        return True
-    return False
+    return _read_record(run_dir, name) is None
 
 
 def _write_record(run_dir: str, name: str, record: dict) -> None:
