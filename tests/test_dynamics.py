@@ -473,7 +473,7 @@ def test_torque_rate_model_converges_with_bounded_torque():
         ({"rate_min": 0.5, "rate_max": 6.0}, r"body-rate range must contain 0"),
         (
             {"rate_model": "pid"},
-            r"QuadParams\.rate_model must be one of \('instant', 'first_order', 'torque'\)",
+            r"QuadParams\.rate_model must be one of \('instant', 'first_order', 'torque', 'firmware'\)",
         ),
         ({"thrust_units": "kgf"}, r"QuadParams\.thrust_units must be one of \('newton', 'mass_normalized'\)"),
         ({"thrust_max": 14.0}, r"QuadParams\.thrust_max=14\.0 cannot lift.*thrust_max > hover thrust"),

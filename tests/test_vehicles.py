@@ -31,13 +31,24 @@ def test_presets_paper_is_the_default_and_crazyflie_has_its_sources():
     assert cf.inertia == (1.029e-5, 1.105e-5, 2.005e-5)
     assert cf.rate_max == pytest.approx(np.deg2rad(720.0)) and cf.rate_min == -cf.rate_max
     assert 1.8 <= vh.thrust_to_weight(cf) <= 2.2
-    assert vh.VEHICLE_NAMES == tuple(vh.VEHICLES) == ("paper", "crazyflie")
+    assert vh.VEHICLE_NAMES == tuple(vh.VEHICLES) == ("paper", "crazyflie", "cf2")
     assert {k for k in vh.CRAZYFLIE_SOURCES} >= {"mass", "thrust_max", "inertia", "tau_rate", "torque_max"}
     assert vh.vehicle_of(cf) == "crazyflie" and vh.vehicle_of(cf.replace(mass=0.03)) is None
 
 
+def test_cf2_is_the_identified_crazyflie_with_its_firmware_loop():
+    cf2 = vh.vehicle("cf2")
+    assert cf2.rate_model == "firmware" and cf2.loop is not None
+    assert cf2.mass == 0.0328 and cf2.thrust_max == pytest.approx(4 * 0.12)
+    assert vh.thrust_to_weight(cf2) == pytest.approx(1.49, abs=0.01)  # crazyflow's identified vehicle
+    assert vh.MIXABLE_NAMES == ("paper", "crazyflie")  # a firmware loop has nothing to blend with
+    assert {"mass", "inertia", "loop.kp/ki/kd/i_limit/torque_limit", "loop.tau_up/tau_down"} <= set(
+        vh.CF2_SOURCES
+    )
+
+
 def test_unknown_vehicle_and_a_pinned_thrust_map_are_refused():
-    with pytest.raises(ValueError, match=r"unknown vehicle 'x500'; allowed: \('paper', 'crazyflie'\)"):
+    with pytest.raises(ValueError, match=r"unknown vehicle 'x500'; allowed: \('paper', 'crazyflie', 'cf2'\)"):
         vh.vehicle("x500")
     with pytest.raises(ValueError, match="thrust_map_mass=1.5 pins another vehicle"):
         vh.with_vehicle(make_config("paper", thrust_map_mass=1.5), "crazyflie")
@@ -92,7 +103,7 @@ def _code(fn, argv) -> int:
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["--vehicle", "x500"], r"--vehicle must be one of \('paper', 'crazyflie'\), got 'x500'"),
+        (["--vehicle", "x500"], r"--vehicle must be one of \('paper', 'crazyflie', 'cf2'\), got 'x500'"),
         (["--preset", "mujoco", "--vehicle", "crazyflie"], "env 'hopper' has none"),
         (["--resume", "/nonexistent/run", "--vehicle", "crazyflie"], "remove --vehicle"),
     ],

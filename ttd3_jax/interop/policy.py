@@ -211,6 +211,14 @@ RATE_MODEL_MEANING = {
     "inertia, k_rate and torque_max are not used",
     "torque": "a rate loop, torque = J k_rate (w_cmd - w) + w x Jw clipped to torque_max, drives "
     "the body rates through the diagonal inertia J; tau_rate is not used",
+    "firmware": "the vehicle's flight firmware tracks the commands (vehicle.loop, ttd3_jax.sim.inner_loop): "
+    "every physics step a rate PID per body axis (e = w_cmd - w; I = clip(I + e dt, +-i_limit); "
+    "tau = clip(kp e + ki I - kd (w - w_prev) / dt, +-torque_limit)), a mixer of (thrust, tau) into four "
+    "rotor thrusts (x configuration, arm, yaw_coeff; an excess over motor_max taken off all four, each "
+    "clipped to [motor_min, motor_max]), rotor speeds s (1 = full thrust) lagging their commands with "
+    "tau_up / tau_down, rotor thrust motor_max (curve s^2 + (1 - curve) s), and air drag -drag v; "
+    "the body rates follow from the torques through the diagonal inertia. On a vehicle, its own "
+    "firmware does this: send it the thrust and body-rate commands",
 }
 CONVENTIONS = dict(
     world_frame="right-handed, z up; gravity along -z",

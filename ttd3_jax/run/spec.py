@@ -14,6 +14,7 @@ import tyro
 
 from ttd3_jax import checks
 from ttd3_jax.run import tasks
+from ttd3_jax.sim import vehicles
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.track_families import WIDE_MIX
 from ttd3_jax.td3.buffer import transition_bytes
@@ -22,11 +23,11 @@ from ttd3_jax.td3.env_spec import EnvSpec
 from ttd3_jax.td3.trainer import Trainer, make_trainer
 
 QUADROTOR = "quadrotor"
-PRESETS = ("fast", "robust", "fast_dpg", "fast_model_free", "paper", "mujoco")
+PRESETS = ("fast", "robust", "cf2", "fast_dpg", "fast_model_free", "paper", "mujoco")
 SEED_LIMIT = 2**32  # seeds are uint32 PRNG keys: seed + num_seeds - 1 must stay below this
 # config.json's "format": the layout of the run spec this version reads, and the only one.  A
 # file of another format was written by an older ttd3_jax, and is refused with one line.
-CONFIG_FORMAT = 10
+CONFIG_FORMAT = 11
 
 
 # The ``robust`` preset's task on top of ``fast``'s (EnvConfig fields by name): what each
@@ -45,6 +46,14 @@ ROBUST_TASK = dict(
     wind_sigma=0.25, obs_noise_pos=0.01, obs_noise_vel=0.05, obs_noise_quat=0.005,
     obs_memory=True, preview_s=(0.1, 0.25, 0.5, 1.0), ref_integral_gain=3.0, wide_mix=WIDE_MIX,
 )  # fmt: skip
+
+
+# The ``cf2`` preset's task: ``robust``'s, flying the ``cf2`` vehicle through its firmware's rate
+# loop and motors (sim.inner_loop), with what a vehicle never tells exactly drawn per episode
+# around the identified values: rotor time constants and rate-PID gains x0.7-1.4, drag x0.5-1.5,
+# inertia x0.8-1.25 per axis.
+CF2_TASK = dict(ROBUST_TASK, quad=vehicles.CF2, tau_rate=(0.7, 1.4), rate_gains=(0.7, 1.4), drag=(0.5, 1.5),
+                inertia=(0.8, 1.25))  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,25 +157,28 @@ def preset(name: str, **changes) -> RunSpec:
     action, the leaky integral of the tracking error and the reference 0.1, 0.25, 0.5 and 1 s
     ahead, and tracks a reference shifted by the integral of its error (integral action).
     Three seeds side by side; each seed's policy is selected on the wide validation tracks.
+    ``cf2``: ``robust`` on the ``cf2`` vehicle, a Crazyflie flown through its firmware's rate PID,
+    mixer and motors (:data:`CF2_TASK`): the policy that flies a real vehicle's inner loop.
     ``mujoco``: the MuJoCo protocol (spec §2.7) on hopper: 1 env, 1 update per step,
     τ = 0.005, c = 0.5, 1e6 steps, L_nom = 1000.
     """
     if name == "paper":
         base = RunSpec()
-    elif name in ("fast", "robust", "fast_dpg", "fast_model_free"):
+    elif name in ("fast", "robust", "cf2", "fast_dpg", "fast_model_free"):
         train = TrainConfig(num_envs=64, total_transitions=450_000, warmup_transitions=10_000,
                             buffer_size=450_000, batch_size=256, updates_per_step=16, hidden=(64, 64),
                             normalize_obs=True, epochs=15)  # fmt: skip
         hp = Hyper(tau=0.005, reward_scale=0.01)
-        if name in ("fast", "robust"):
+        if name in ("fast", "robust", "cf2"):
             train = dataclasses.replace(train, model_horizon=50, total_transitions=1_600_000, epochs=10,
                                         updates_per_step=2)  # fmt: skip
             hp = hp.replace(lr_actor=1e-2)
         memory = name == "fast_model_free"
         task = make_config("practical", hover_centered_thrust=True, obs_memory=memory, obs_privileged=memory)
         base = RunSpec(train=train, hp=hp, task=task)
-        if name == "robust":
-            base = RunSpec(train=train, hp=hp, task=task.replace(**ROBUST_TASK), num_seeds=3)
+        if name in ("robust", "cf2"):
+            extra = ROBUST_TASK if name == "robust" else CF2_TASK
+            base = RunSpec(train=train, hp=hp, task=task.replace(**extra), num_seeds=3)
     elif name == "mujoco":
         train = TrainConfig(num_envs=1, total_transitions=1_000_000, warmup_transitions=25_000,
                             buffer_size=1_000_000, updates_per_step=1, epochs=200)  # fmt: skip

@@ -17,7 +17,7 @@ from ttd3_jax.sim import track_families as tf
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim import vehicle_mix as vm
 from ttd3_jax.sim.dynamics import QuadParams, validate_params
-from ttd3_jax.sim.vehicles import VEHICLE_NAMES
+from ttd3_jax.sim.vehicles import MIXABLE_NAMES
 
 TRACK_MODES = ("train", "validation", "spiral_rt", "los_rt")
 ERR_REFS = ("current", "next")
@@ -30,11 +30,22 @@ CRASH_GAMMA = 0.99  # the discount the derived crash penalty is sized for (spec 
 # the fields EnvConfig.for_eval sets, and the episode length it keeps (keep them together)
 EVAL_PROTOCOL_FIELDS = ("track", "los_seed", "randomize_init", "terminate", "wind_sigma", "e_max",
                         "obs_noise_pos", "obs_noise_vel", "obs_noise_quat", "episode_steps",
-                        "mass", "inertia", "thrust_max", "thrust_gain", "tau_rate", "rate_limit", "latency",
-                        "obs_noise", "pos_bias", "wind_mean")  # fmt: skip
+                        "mass", "inertia", "thrust_max", "thrust_gain", "tau_rate", "rate_limit",
+                        "rate_gains",
+                        "drag", "latency", "obs_noise", "pos_bias", "wind_mean")  # fmt: skip
 LATENCY_MAX_S = 0.05  # s: the largest actuation latency randomization.latency may draw
 # the plant's ranges of RandomizationConfig (lo, hi) and their neutral value (the nominal plant)
-PLANT_FACTORS = ("mass", "inertia", "thrust_max", "thrust_gain", "tau_rate", "rate_limit")
+PLANT_FACTORS = (
+    "mass",
+    "inertia",
+    "thrust_max",
+    "thrust_gain",
+    "tau_rate",
+    "rate_limit",
+    "rate_gains",
+    "drag",
+)
+FIRMWARE_FACTORS = ("rate_gains", "drag")  # ranges only the firmware rate model has a parameter for
 PLANT_NEUTRAL = {**dict.fromkeys(PLANT_FACTORS, (1.0, 1.0)), "latency": (0.0, 0.0), "obs_noise": (1.0, 1.0),
                  "pos_bias": 0.0, "wind_mean": 0.0}  # fmt: skip
 DT_MAX = 0.01  # s: the physics step the integrator is used with at most (the body-rate lag is 0.03 s)
@@ -227,7 +238,12 @@ class RandomizationConfig:
     )  # factor on quad.thrust_max (the flown vehicle's limit)
     thrust_gain: tuple[float, float] = (1.0, 1.0)  # thrust produced / thrust commanded (thrust-map error)
     # an "instant" vehicle flies the first_order rate model when tau_rate is randomised (same observation)
-    tau_rate: tuple[float, float] = (1.0, 1.0)  # factor on quad.tau_rate (first_order time constant)
+    tau_rate: tuple[float, float] = (
+        1.0,
+        1.0,
+    )  # factor on the rate lag: quad.tau_rate, or the rotors' (firmware)
+    rate_gains: tuple[float, float] = (1.0, 1.0)  # factor on the firmware rate PID's kp, ki, kd (one draw)
+    drag: tuple[float, float] = (1.0, 1.0)  # factor on the firmware model's air drag (quad.loop.drag)
     rate_limit: Annotated[tuple[float, float], Suppress] = (
         1.0,
         1.0,
@@ -237,15 +253,15 @@ class RandomizationConfig:
     pos_bias: float | tuple[float, float, float] = 0.0  # m, ± per axis: a constant bias of the observed
     #   position; a 3-tuple instead is that bias itself, the same every episode (robustness rows)
     wind_mean: float = 0.0  # m/s², ± per axis: a constant wind acceleration added to the OU wind
-    # () = the config's vehicle; two of sim.vehicles.VEHICLE_NAMES: each episode flies one between them, known
+    # () = the config's vehicle; two of sim.vehicles.MIXABLE_NAMES: each episode flies one between them, known
     # to the policy (sim.vehicle_mix); quad then gives only rate_model, gravity, thrust_units. (a, a): a alone
     vehicles: tuple[str, ...] = ()
 
     def __post_init__(self):
         f = lambda name: _where("randomization", name)  # noqa: E731
         v = self.vehicles
-        if not (isinstance(v, tuple | list) and len(v) in (0, 2) and all(n in VEHICLE_NAMES for n in v)):
-            checks.fail(f("vehicles"), f"() or two names of {VEHICLE_NAMES} (a policy for both and every "
+        if not (isinstance(v, tuple | list) and len(v) in (0, 2) and all(n in MIXABLE_NAMES for n in v)):
+            checks.fail(f("vehicles"), f"() or two names of {MIXABLE_NAMES} (a policy for both and every "
                         "vehicle between them)", v)  # fmt: skip
         object.__setattr__(self, "vehicles", tuple(v))
         checks.boolean(f("randomize_init"), self.randomize_init)
@@ -426,6 +442,10 @@ def _validate_hover(c: EnvConfig, q: QuadParams) -> None:
     if tuple(r.tau_rate) != PLANT_NEUTRAL["tau_rate"] and q.rate_model == "torque":
         checks.fail("EnvConfig.randomization.tau_rate", "(1.0, 1.0) with rate_model 'torque' (which has no "
                     "time constant; randomise inertia)", r.tau_rate)  # fmt: skip
+    for name in FIRMWARE_FACTORS:
+        if tuple(getattr(r, name)) != PLANT_NEUTRAL[name] and q.rate_model != "firmware":
+            checks.fail(f"EnvConfig.randomization.{name}", f"(1.0, 1.0) with rate_model {q.rate_model!r} "
+                        "(only the 'firmware' model has a rate PID and drag)", getattr(r, name))  # fmt: skip
     # the most thrust the flown vehicle gives: the action map's maximum times the gain, up to
     # its own (randomised) limit; hover needs the heaviest draw's weight (newton units)
     most = q.thrust_max * min(r.thrust_gain[0], r.thrust_max[0])

@@ -18,7 +18,10 @@ import jax.numpy as jnp
 from flax import struct
 from tyro.conf import Suppress  # (a field the command line does not show)
 
-RATE_MODELS = ("instant", "first_order", "torque")
+from ttd3_jax.sim import inner_loop as il
+from ttd3_jax.sim.inner_loop import InnerLoop
+
+RATE_MODELS = ("instant", "first_order", "torque", "firmware")
 THRUST_UNITS = ("newton", "mass_normalized")
 
 
@@ -45,6 +48,8 @@ class QuadParams:
     )  # kg m^2, diagonal of J
     k_rate: Annotated[tuple[float, float, float], Suppress] = (20.0, 20.0, 10.0)  # 1/s, rate-loop gain K_w
     torque_max: Annotated[tuple[float, float, float], Suppress] = (2.2, 1.3, 0.6)  # N m, |eta| bound per axis
+    # The "firmware" rate model's rate PID, mixer, motors and drag (sim.inner_loop); None otherwise
+    loop: Annotated[InnerLoop | None, Suppress] = None
     rate_model: str = struct.field(pytree_node=False, default="instant")
     thrust_units: Annotated[str, Suppress] = struct.field(pytree_node=False, default="newton")
 
@@ -94,12 +99,66 @@ def validate_params(p: QuadParams) -> None:
             f"{p.hover_thrust:.3f} ({p.thrust_units}); allowed range is thrust_max > hover thrust"
         )
     for name in ("inertia", "k_rate", "torque_max"):
-        vals = getattr(p, name)
-        if not isinstance(vals, (tuple, list)) or len(vals) != 3:
-            raise ValueError(f"QuadParams.{name} must have 3 entries (x, y, z), got {vals!r}")
-        for v in vals:
-            if _as_float(name, v) <= 0:
-                raise ValueError(f"QuadParams.{name} entries must be > 0, got {vals!r}")
+        _check_triple(name, getattr(p, name), strict=True)
+    if p.rate_model == "firmware":
+        validate_loop(p)
+    elif p.loop is not None:
+        raise ValueError(
+            f"QuadParams.loop must be None with rate_model {p.rate_model!r} (only 'firmware' flies "
+            "an inner loop), got an InnerLoop"
+        )
+
+
+def _check_triple(name: str, vals, strict: bool) -> None:
+    if not isinstance(vals, (tuple, list)) or len(vals) != 3:
+        raise ValueError(f"QuadParams.{name} must have 3 entries (x, y, z), got {vals!r}")
+    for v in vals:
+        x = _as_float(name, v)
+        if x < 0 or (strict and x == 0):
+            raise ValueError(f"QuadParams.{name} entries must be {'> 0' if strict else '>= 0'}, got {vals!r}")
+
+
+def validate_loop(p: QuadParams) -> None:
+    """Check ``p.loop`` (the ``firmware`` rate model's inner loop), naming the bad field."""
+    loop = p.loop
+    if not isinstance(loop, InnerLoop):
+        raise ValueError(
+            f"QuadParams.loop must be an InnerLoop with rate_model 'firmware' (the cf2 vehicle has one: "
+            f"--vehicle cf2), got {loop!r}"
+        )
+    if p.thrust_units != "newton":
+        raise ValueError(
+            f"QuadParams.thrust_units must be 'newton' with rate_model 'firmware', got {p.thrust_units!r}"
+        )
+    for name in ("kp", "ki", "kd"):
+        _check_triple(f"loop.{name}", getattr(loop, name), strict=False)
+    for name in ("i_limit", "torque_limit"):
+        _check_triple(f"loop.{name}", getattr(loop, name), strict=True)
+    for name in ("arm", "yaw_coeff", "motor_max", "tau_up", "tau_down"):
+        if _as_float(f"loop.{name}", getattr(loop, name)) <= 0:
+            raise ValueError(f"QuadParams.loop.{name} must be > 0, got {getattr(loop, name)!r}")
+    for name in ("motor_min", "drag", "curve"):
+        if _as_float(f"loop.{name}", getattr(loop, name)) < 0:
+            raise ValueError(f"QuadParams.loop.{name} must be >= 0, got {getattr(loop, name)!r}")
+    if loop.curve > 2:
+        raise ValueError(
+            f"QuadParams.loop.curve must be in [0, 2] (the thrust curve's share of s²), got {loop.curve!r}"
+        )
+    if loop.motor_min >= loop.motor_max:
+        raise ValueError(
+            f"QuadParams.loop.motor_min must be < motor_max, got {loop.motor_min} >= {loop.motor_max}"
+        )
+    weight = p.mass * p.gravity
+    if 4 * loop.motor_max <= weight:
+        raise ValueError(
+            f"QuadParams.loop.motor_max={loop.motor_max} N cannot hover: four rotors make "
+            f"{4 * loop.motor_max:.4g} N, the weight is {weight:.4g} N; allowed: motor_max > {weight / 4:.4g}"
+        )
+    if 4 * loop.motor_min >= weight:
+        raise ValueError(
+            f"QuadParams.loop.motor_min={loop.motor_min} N cannot hover: four idle rotors make "
+            f"{4 * loop.motor_min:.4g} N, the weight is {weight:.4g} N; allowed: motor_min < {weight / 4:.4g}"
+        )
 
 
 @struct.dataclass
@@ -118,6 +177,27 @@ class QuadState:
         dtype = dtype or jnp.zeros(()).dtype
         zero = jnp.zeros(3, dtype)
         return cls(p=jnp.asarray(p, dtype), v=zero, q=jnp.array([1.0, 0.0, 0.0, 0.0], dtype), w=zero)
+
+
+@struct.dataclass
+class FirmwareState(QuadState):
+    """:class:`QuadState` of the ``firmware`` rate model: also the rotors' speeds ``motor`` (4,)
+    (1 = full thrust), the rate PID's integral ``integ`` (3,) rad and the body rates it measured
+    last, ``gyro`` (3,) rad/s (its D term differentiates the measurement)."""
+
+    motor: jax.Array
+    integ: jax.Array
+    gyro: jax.Array
+
+
+def model_state(params: QuadParams, x: QuadState) -> QuadState:
+    """``x`` as ``params``' rate model carries it: under ``firmware``, a :class:`FirmwareState`
+    whose rotors hold the weight (the vehicle as it hovers), the PID at rest; else ``x``."""
+    if params.rate_model != "firmware":
+        return x
+    s = il.hover_speed(params.loop, params.mass * params.gravity).astype(x.p.dtype)
+    return FirmwareState(p=x.p, v=x.v, q=x.q, w=x.w, motor=jnp.broadcast_to(s, (4,)),
+                         integ=jnp.zeros(3, x.p.dtype), gyro=x.w)  # fmt: skip
 
 
 def quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
@@ -213,6 +293,8 @@ def derivative(params: QuadParams, x: QuadState, u: jax.Array,
     """Continuous-time ``ẋ = f(x, u)`` for control ``u`` (4,) ``[thrust, ω_cmd]`` and an
     optional extra world-frame acceleration ``accel_ext`` (3,) m/s^2 (wind).  Under
     ``rate_model="instant"`` ω_cmd drives the attitude and the stored ``w`` does not move."""
+    if params.rate_model == "firmware":
+        return _firmware_derivative(params, x, u, accel_ext)
     c = collective_accel(params, u[0])
     w_cmd = u[1:4]
     g = jnp.asarray([0.0, 0.0, params.gravity], x.v.dtype)
@@ -226,6 +308,23 @@ def derivative(params: QuadParams, x: QuadState, u: jax.Array,
     return QuadState(p=x.v, v=v_dot, q=quat_rate(x.q, w_att), w=w_dot)
 
 
+def _firmware_derivative(params: QuadParams, x: FirmwareState, s_cmd: jax.Array,
+                         accel_ext: jax.Array | None) -> FirmwareState:  # fmt: skip
+    """``ẋ`` of the ``firmware`` model under rotor-speed commands ``s_cmd`` (4,) (held over the
+    step; the PID's state changes only between steps)."""
+    loop, dtype = params.loop, x.v.dtype
+    thrust, tau = il.wrench(loop, il.rotor_thrust(loop, x.motor))
+    g = jnp.asarray([0.0, 0.0, params.gravity], dtype)
+    v_dot = (thrust * body_z(x.q) - loop.drag * x.v) / params.mass - g
+    if accel_ext is not None:
+        v_dot = v_dot + accel_ext
+    inertia = jnp.asarray(params.inertia, dtype)
+    w_dot = (tau - jnp.cross(x.w, inertia * x.w)) / inertia
+    zero = jnp.zeros_like(x.integ)
+    return FirmwareState(p=x.v, v=v_dot, q=quat_rate(x.q, x.w), w=w_dot,
+                         motor=il.rotor_rate(loop, x.motor, s_cmd), integ=zero, gyro=zero)  # fmt: skip
+
+
 def _axpy(a, dx: QuadState, x: QuadState) -> QuadState:
     return jax.tree.map(lambda xi, di: xi + a * di, x, dx)
 
@@ -235,6 +334,10 @@ def rk4_step(params: QuadParams, x: QuadState, u: jax.Array, dt: float,
              renormalize: bool = True) -> QuadState:  # fmt: skip
     """Advance ``x`` by ``dt`` seconds under zero-order-hold ``u`` (spec D7): ``substeps`` RK4
     steps, then ``q`` back to unit norm if ``renormalize`` (``instant`` model: ``w = ω_cmd``)."""
+    firmware = params.rate_model == "firmware"
+    if firmware:  # the firmware's step, once per physics step: u becomes rotor-speed commands
+        gyro = x.w
+        u, integ = il.command(params.loop, u[0], u[1:4], gyro, x.gyro, x.integ, dt)
     h = dt / substeps
     for _ in range(substeps):  # static, small: unrolled
         k1 = derivative(params, x, u, accel_ext)
@@ -245,6 +348,8 @@ def rk4_step(params: QuadParams, x: QuadState, u: jax.Array, dt: float,
             lambda xi, a, b, c, d: xi + (h / 6.0) * (a + 2.0 * b + 2.0 * c + d), x, k1, k2, k3, k4
         )
     q = x.q / jnp.linalg.norm(x.q) if renormalize else x.q
+    if firmware:  # the PID measured the rates at the start of this step
+        return x.replace(q=q, integ=integ, gyro=gyro)
     w = u[1:4].astype(x.w.dtype) if params.rate_model == "instant" else x.w
     return x.replace(q=q, w=w)
 

@@ -22,11 +22,13 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from ttd3_jax.sim import inner_loop as il
 from ttd3_jax.sim import vehicle_mix as vm
 from ttd3_jax.sim.config import EnvConfig, plant_is_nominal
 from ttd3_jax.sim.dynamics import QuadParams
 
 PLANT_TAG = 0x0D12  # folded into a reset's key, so that drawing the plant changes no other draw
+FIRMWARE_TAG = 0x0F1E  # folded into it for the firmware model's draws (the other draws keep their keys)
 
 
 @struct.dataclass
@@ -138,11 +140,16 @@ def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=N
 
     rate = uni(4, r.rate_limit)
     inertia = uni(1, r.inertia, (3,))
+    thrust_max, tau = uni(2, r.thrust_max), uni(3, r.tau_rate)
+    if quad.rate_model == "firmware":
+        quad = quad.replace(
+            loop=_draw_loop(quad.loop, jax.random.fold_in(key, FIRMWARE_TAG), r, thrust_max, tau)
+        )
     quad = quad.replace(
         mass=quad.mass * uni(0, r.mass),
         inertia=tuple(i * inertia[j] for j, i in enumerate(quad.inertia)),
-        thrust_max=quad.thrust_max * uni(2, r.thrust_max),
-        tau_rate=quad.tau_rate * uni(3, r.tau_rate),
+        thrust_max=quad.thrust_max * thrust_max,
+        tau_rate=quad.tau_rate * tau,
         rate_min=quad.rate_min * rate,
         rate_max=quad.rate_max * rate,
     )
@@ -162,6 +169,22 @@ def draw(cfg: EnvConfig, key: jax.Array, quad: QuadParams | None = None, dtype=N
         pos_bias=bias,
         wind_mean=uni(9, (-r.wind_mean, r.wind_mean), (3,), 0.0),
     )
+
+
+def _draw_loop(loop: il.InnerLoop, key: jax.Array, r, thrust_max: jax.Array, tau: jax.Array) -> il.InnerLoop:
+    """The firmware model's inner loop of one episode: the rotors' limits scaled with
+    ``thrust_max``, their time constants with ``tau`` (the ``tau_rate`` draw), and the rate
+    gains and drag drawn from ``rate_gains`` and ``drag`` (a key of their own)."""
+    k_gain, k_drag = jax.random.split(key)
+    gain = r.rate_gains[0] + (r.rate_gains[1] - r.rate_gains[0]) * jax.random.uniform(
+        k_gain, (), thrust_max.dtype
+    )
+    drag = r.drag[0] + (r.drag[1] - r.drag[0]) * jax.random.uniform(k_drag, (), thrust_max.dtype)
+    scale = lambda v, f: tuple(x * f for x in v)  # noqa: E731
+    return loop.replace(kp=scale(loop.kp, gain), ki=scale(loop.ki, gain), kd=scale(loop.kd, gain),
+                        motor_min=loop.motor_min * thrust_max, motor_max=loop.motor_max * thrust_max,
+                        tau_up=loop.tau_up * tau, tau_down=loop.tau_down * tau,
+                        drag=loop.drag * drag)  # fmt: skip
 
 
 def commanded_lags(cfg: EnvConfig, latency: jax.Array) -> jax.Array:

@@ -61,7 +61,8 @@ def check_units(cfg) -> None:
     v = cfg.vehicle
     need = [n for ok, n in ((v.hover_centered_thrust, "vehicle.hover_centered_thrust true"),
                             (v.thrust_map_mass is None, "vehicle.thrust_map_mass None"),
-                            (v.quad.thrust_units == "newton", "vehicle.quad.thrust_units 'newton'"))
+                            (v.quad.thrust_units == "newton", "vehicle.quad.thrust_units 'newton'"),
+                            (v.quad.rate_model != "firmware", "vehicle.quad.rate_model not 'firmware'"))
             if not ok]  # fmt: skip
     if need:
         raise ValueError(f"EnvConfig.randomization.vehicles {cfg.randomization.vehicles} needs {need[0]} "

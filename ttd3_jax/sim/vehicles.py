@@ -5,7 +5,9 @@ read it).  ``crazyflie``: a Crazyflie 2.x class vehicle (27 g) from public sourc
 number and where it comes from is in :data:`CRAZYFLIE_SOURCES` and docs/paper-notes.md.
 Both keep the paper's ``instant`` rate model, so the env's observation, the presets and the
 controllers apply unchanged; the torque-model fields are the vehicle's own, for
-``--task.vehicle.quad.rate-model first_order|torque``.
+``--task.vehicle.quad.rate-model first_order|torque``.  ``cf2``: a Crazyflie 2.x as crazyflow
+identifies it (32.8 g, thrust-to-weight 1.49), flown through its firmware's rate PID, mixer and
+motors (rate model ``firmware``, :mod:`ttd3_jax.sim.inner_loop`); sources in :data:`CF2_SOURCES`.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import math
 
 from ttd3_jax.sim.dynamics import QuadParams
+from ttd3_jax.sim.inner_loop import InnerLoop
 
 _L2F = "rl-tools/rl-tools include/rl_tools/rl/environments/l2f/parameters/dynamics/crazyflie.h"
 _L2F_COMMIT = "e8cad8334285ec0fd2e581aac59833771f02f6f9"
@@ -51,8 +54,69 @@ CRAZYFLIE_SOURCES: dict[str, tuple[object, str]] = {
     "k_rate": (CRAZYFLIE.k_rate, "chosen: the paper vehicle's rate-loop gains (no public value)"),
 }
 
-VEHICLES: dict[str, QuadParams] = {"paper": QuadParams.create(), "crazyflie": CRAZYFLIE}
+_DM = (
+    "utiasDSL/drone-models @ 77f04ab1 drone_models/data/params.toml [cf2x_L250] (crazyflow 0.4.0's cf2x_L250)"
+)
+_FW = "bitcraze/crazyflie-firmware @ 2a18fc29 src/platform/interface/platform_defaults_cf2.h"
+_CF2_RATE = 2 * math.pi  # rad/s, the action map's body-rate range (chosen; the firmware allows 720 deg/s)
+
+# A Crazyflie 2.x (legacy propellers) as crazyflow identifies it, flown through its firmware's
+# rate PID, mixer and motors (rate model "firmware", sim.inner_loop; InnerLoop's defaults)
+CF2 = QuadParams.create(
+    mass=0.0328,
+    thrust_min=0.0,
+    thrust_max=4 * InnerLoop().motor_max,  # 0.48 N, thrust-to-weight 1.49
+    rate_min=-_CF2_RATE,
+    rate_max=_CF2_RATE,
+    inertia=(16.8e-6, 16.8e-6, 29.8e-6),
+    torque_max=InnerLoop().torque_limit,  # (the torque model's field; firmware: the PID's output bound)
+    rate_model="firmware",
+    loop=InnerLoop(),
+)
+
+CF2_SOURCES: dict[str, tuple[object, str]] = {
+    "mass": (
+        CF2.mass,
+        f"{_DM} [first_principles]: mass = 0.0328 kg (crazyflow's plant; the firmware assumes 0.029)",
+    ),
+    "inertia": (CF2.inertia, f"{_DM}: J = diag(16.8e-6, 16.8e-6, 29.8e-6) kg m^2 (marked TODO upstream)"),
+    "thrust_max": (CF2.thrust_max, f"{_FW}: THRUST_MAX 0.12 N per motor, x 4"),
+    "rate_min/rate_max": (CF2.rate_max, "chosen: ±2π rad/s (the firmware's rate mode allows ±720 deg/s)"),
+    "loop.kp/ki/kd/i_limit/torque_limit": (
+        InnerLoop().kp,
+        f"{_FW}: PID_ROLL/PITCH/YAW_RATE_KP/KI/KD/"
+        "INTEGRATION_LIMIT, int16 output clamp; to SI: docs/crazyflie-parameters.md",
+    ),
+    "loop.arm": (InnerLoop().arm, f"{_DM}: L = 0.03253 m (firmware ARM_LENGTH 0.046 m x √½)"),
+    "loop.yaw_coeff": (
+        InnerLoop().yaw_coeff,
+        f"{_FW}: THRUST2TORQUE 0.0073509 m (legacy props; DM thrust2torque)",
+    ),
+    "loop.motor_min/motor_max": (
+        (InnerLoop().motor_min, InnerLoop().motor_max),
+        f"{_FW}: THRUST_MIN, THRUST_MAX",
+    ),
+    "loop.curve": (
+        InnerLoop().curve,
+        f"{_DM}: rpm2thrust = [0, -5.382e-7, 2.458e-10] rescaled to F(1) = 0.12 N",
+    ),
+    "loop.tau_up/tau_down": (
+        (InnerLoop().tau_up, InnerLoop().tau_down),
+        f"{_DM}: rotor_dyn_coef = [7.3556, 0, 0, "
+        "2.4444e-4]: 1/7.3556 s up; down 2.4444e-4 (cmd² − rpm²), linearised at hover",
+    ),
+    "loop.drag": (
+        InnerLoop().drag,
+        f"{_DM} [so_rpy_rotor_drag]: drag_matrix diag -0.01495 (x, y), -0.01390 (z) "
+        "N/(m/s); the x, y value on every axis",
+    ),
+}
+
+VEHICLES: dict[str, QuadParams] = {"paper": QuadParams.create(), "crazyflie": CRAZYFLIE, "cf2": CF2}
 VEHICLE_NAMES: tuple[str, ...] = tuple(VEHICLES)
+# the vehicles randomization.vehicles may blend: those without an inner loop (sim.vehicle_mix
+# interpolates every parameter; a firmware loop has no counterpart to blend with)
+MIXABLE_NAMES: tuple[str, ...] = tuple(n for n, q in VEHICLES.items() if q.rate_model != "firmware")
 
 
 def vehicle(name: str) -> QuadParams:
