@@ -33,7 +33,7 @@ PEER_VENVS = (REPO / ".venv-peers", REPO / ".venv-crazyflow")
 # how to get each peer (the versions measured in docs/performance.md; see pyproject's extras)
 INSTALL = {
     "crazyflow": (
-        "python -m venv .venv-crazyflow && .venv-crazyflow/bin/pip install -e '.[peers-crazyflow]'"
+        "python -m venv .venv-crazyflow && .venv-crazyflow/bin/pip install -e '.[transfer]'"
         "  (crazyflow 0.4.0 excludes jax 0.10.2, so it gets its own venv)"
     ),
     "rejax": "python -m venv .venv-peers && .venv-peers/bin/pip install -e '.[peers]'",

@@ -4,10 +4,14 @@ vehicle.  It imports nothing from ``ttd3_jax``: only NumPy, onnxruntime (``pip i
 ".[export]"``), the export's ``policy.json`` / ``policy.onnx`` and the protocol tracks in
 ``experiments/tracks/protocol/`` (``t,x,y,z`` at every physics step).
 
-It implements the observation parts of the ``fast``, ``fast_dpg`` and ``paper`` presets (p, v,
-q, p_ahead, p_ahead_error, error), the ``instant`` and ``first_order`` rate models and the
-nominal vehicle; a policy that reads anything else (a preview, memory, a vehicle descriptor)
-is refused, naming the part.  Prints Σ‖e‖ per track against ``expected_tracking_error``.
+It builds every observation part of the ``fast``, ``fast_dpg``, ``paper`` and ``robust``
+presets from ``policy.json`` (:func:`observe`, :class:`Memory`): p, v, q, p_ahead,
+p_ahead_error, error, omega (body rates), the memory parts last_action and error_integral,
+the preview of the reference (``preview_s``) and the reference integral's shift; and it
+simulates the ``instant`` and ``first_order`` rate models of the nominal vehicle.  A policy
+that reads anything else (a vehicle descriptor) or flies another rate model is refused,
+naming it.  Prints Σ‖e‖ per track against ``expected_tracking_error``.
+``experiments/transfer_crazyflow.py`` builds its observation with the same functions.
 
     python -m ttd3_jax.export RUN_DIR --out POLICY_DIR
     python experiments/fly_exported.py POLICY_DIR                          # Spiral-RT, LOS-RT
@@ -24,21 +28,34 @@ import sys
 import numpy as np
 
 TRACKS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "tracks", "protocol")
-PARTS = ("p", "v", "q", "p_ahead", "p_ahead_error", "error")  # the parts this script builds
+# the parts this script builds, and the preview's (``preview_{t:g}s``, one per time of preview_s)
+PARTS = ("p", "v", "q", "p_ahead", "p_ahead_error", "error", "omega", "last_action", "error_integral")
+PREVIEW = "preview_"
 RATE_MODELS = ("instant", "first_order")
+
+
+def check_observation(meta: dict) -> str | None:
+    """Why :func:`observe` cannot build the observation of ``meta`` (None: it can)."""
+    spec = meta["observation_spec"]
+    preview = {f"{PREVIEW}{t:g}s" for t in spec.get("preview_s", [])}
+    read = [part for part in spec["parts"] if not part.get("critic_only", False)]
+    other = [part["name"] for part in read if part["name"] not in PARTS and part["name"] not in preview]
+    if other:
+        allowed = [*PARTS, *(sorted(preview) or [f"{PREVIEW}<t>s"])]
+        return f"its observation has parts this script does not build: {other}; allowed: {allowed}"
+    if not spec["frame"].startswith("track") and not spec["frame"].startswith("world"):
+        return f"observation frame {spec['frame']!r}; allowed: track, world"
+    if sum(part["size"] for part in read) != meta["obs_size"]:
+        return f"its parts hold {sum(p['size'] for p in read)} entries, obs_size is {meta['obs_size']}"
+    return None
 
 
 def check(meta: dict) -> str | None:
     """Why this script cannot fly the policy of ``meta`` (None: it can)."""
-    spec = meta["observation_spec"]
-    other = [part["name"] for part in spec["parts"] if part["name"] not in PARTS]
-    if other:
-        return f"its observation has parts this script does not build: {other}; allowed: {list(PARTS)}"
-    if not spec["frame"].startswith("track") and not spec["frame"].startswith("world"):
-        return f"observation frame {spec['frame']!r}; allowed: track, world"
-    if meta["rate_model"]["name"] not in RATE_MODELS:
-        return f"rate model {meta['rate_model']['name']!r}; allowed: {list(RATE_MODELS)}"
-    return None
+    why = check_observation(meta)
+    if why is None and meta["rate_model"]["name"] not in RATE_MODELS:
+        why = f"rate model {meta['rate_model']['name']!r}; allowed: {list(RATE_MODELS)}"
+    return why
 
 
 def action_to_control(meta: dict, a: np.ndarray) -> tuple[float, np.ndarray]:
@@ -81,17 +98,64 @@ def rk4(meta: dict, x: np.ndarray, c, w_cmd: np.ndarray) -> np.ndarray:
     return x
 
 
-def observe(meta: dict, x: np.ndarray, ref: np.ndarray, k: int) -> np.ndarray:
-    """The observation at physics step k, part by part as ``observation_spec`` lists them."""
+class Memory:
+    """What the observation keeps from step to step (``observation_spec.memory``): the last
+    action (4), the leaky error integral (3, m s) and the reference integral (3, m s), all
+    zero at the start of a flight.  ``dtype``: the precision it is kept in (the env's float32)."""
+
+    def __init__(self, meta: dict, dtype=np.float32):
+        self.spec = meta["observation_spec"].get("memory") or {}
+        self.integral = self.spec.get("reference_integral") or {}
+        self.last_action = np.zeros(4, dtype)
+        self.error_integral = np.zeros(3, dtype)
+        self.ref_int = np.zeros(3, dtype)
+
+    def update(self, action: np.ndarray, p: np.ndarray, p_d: np.ndarray) -> None:
+        """After a control step: ``action`` the one it applied (clipped to [-1, 1]), ``p`` the
+        measured position (m) and ``p_d`` the reference at the step's end."""
+        f = self.error_integral.dtype.type
+        self.last_action = np.clip(action, -1.0, 1.0).astype(self.last_action.dtype)
+        if not self.spec:
+            return
+        e = np.asarray(p_d, self.error_integral.dtype) - np.asarray(p, self.error_integral.dtype)
+        dt = f(self.spec["dt_s"])
+        self.error_integral = f(self.spec["leak"]) * self.error_integral + dt * e
+        if self.integral:  # only within the band: no wind-up far off the track
+            self.ref_int = self.ref_int + dt * np.where(np.abs(e) < f(self.integral["band_m"]), e, f(0))
+
+    def shift(self) -> np.ndarray:
+        """s (3,) m: the reference integral's shift of the observed reference (0 without one)."""
+        if not self.integral:
+            return np.zeros(3, self.ref_int.dtype)
+        lim = self.ref_int.dtype.type(self.integral["limit_m"])
+        return np.clip(self.ref_int.dtype.type(self.integral["gain_per_s"]) * self.ref_int, -lim, lim)
+
+
+def reference(ref: np.ndarray, k: int) -> np.ndarray:
+    """p_d at physics step k (m); past the table's end, its last point (held)."""
+    return ref[min(k, len(ref) - 1)]
+
+
+def observe(meta: dict, x: np.ndarray, ref: np.ndarray, k: int, memory: Memory | None = None) -> np.ndarray:
+    """The observation at physics step k, part by part as ``observation_spec`` lists them: ``x``
+    = (p, v, q (qw, qx, qy, qz), ω) of the vehicle as measured, ``ref`` (rows, 3) the reference
+    at every physics step, ``memory`` the parts kept from step to step (needed when read)."""
     spec = meta["observation_spec"]
-    p, v, q = x[0:3], x[3:6], x[6:10]
-    q = -q if q[0] < 0 else q  # qw >= 0
-    origin = ref[k] if spec["frame"].startswith("track") else np.zeros(3, x.dtype)
-    ahead = ref[k + spec["lookahead_physics_steps"]]
-    p_err = ref[k + 1] if "k+1" in spec["error_reference"] else ref[k]
+    memory = memory or Memory(meta, x.dtype)
+    p, v, q, w = x[0:3] - memory.shift().astype(x.dtype), x[3:6], x[6:10], x[10:13]
+    q = -q if q[0] < 0 and "qw >= 0" in spec["quaternion_sign"] else q
+    origin = reference(ref, k) if spec["frame"].startswith("track") else np.zeros(3, x.dtype)
+    look = spec["lookahead_physics_steps"]
+    ahead = reference(ref, k + look)
+    p_err = reference(ref, k + 1) if "k+1" in spec["error_reference"] else reference(ref, k)
     parts = {"p": p - origin, "v": v, "q": q, "p_ahead": ahead - origin, "p_ahead_error": ahead - p,
-             "error": [np.linalg.norm(p_err - p)]}  # fmt: skip
-    return np.concatenate([np.asarray(parts[part["name"]], x.dtype) for part in spec["parts"]])
+             "error": [np.linalg.norm(p_err - p)], "omega": w, "last_action": memory.last_action,
+             "error_integral": memory.error_integral}  # fmt: skip
+    dt = meta["evaluation_protocol"]["physics_dt_s"]
+    for t in spec.get("preview_s", []):  # the reference t s after p_ahead, relative to it
+        parts[f"{PREVIEW}{t:g}s"] = reference(ref, k + look + round(t / dt)) - ahead
+    read = [part["name"] for part in spec["parts"] if not part.get("critic_only", False)]
+    return np.concatenate([np.asarray(parts[name], x.dtype) for name in read])
 
 
 def fly(meta: dict, session, ref: np.ndarray, dtype=np.float32) -> dict:
@@ -102,10 +166,14 @@ def fly(meta: dict, session, ref: np.ndarray, dtype=np.float32) -> dict:
     x[0:3], x[6] = ref[0], 1.0  # at rest on p_d(0), level
     newton = veh.get("thrust_units", "newton") == "newton"
     errors = np.zeros(proto["physics_steps"], dtype)
+    memory, a = Memory(meta, dtype), np.zeros(4, np.float32)
     for k in range(proto["physics_steps"]):
         if k % meta["action_repeat"] == 0:
-            obs = observe(meta, x, ref, k)[None].astype(np.float32)
-            thrust, w_cmd = action_to_control(meta, session.run(["action"], {"obs": obs})[0][0])
+            if k > 0:  # the control step that ended here: the memory parts
+                memory.update(a, x[0:3], ref[k])
+            obs = observe(meta, x, ref, k, memory)[None].astype(np.float32)
+            a = np.clip(session.run(["action"], {"obs": obs})[0][0], -1.0, 1.0)
+            thrust, w_cmd = action_to_control(meta, a)
             c = thrust / veh["mass"] if newton else thrust
         x = rk4(meta, x, c, w_cmd)
         errors[k] = np.linalg.norm(x[0:3] - ref[k + 1])

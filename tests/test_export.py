@@ -139,6 +139,7 @@ def test_the_sidecar_says_what_the_policy_reads_and_writes(exported):
     assert meta["rate_model"]["name"] == cfg.vehicle.quad.rate_model
     assert meta["evaluation_protocol"]["physics_steps"] == cfg.episode_steps
     assert meta["action_repeat"] == cfg.action_repeat
+    assert pe.env_config(meta) == cfg  # the run's env config, rebuilt (experiments/transfer_crazyflow.py)
     assert "Threefry" in meta["test_tracks"] and "experiments/tracks/protocol" in meta["test_tracks"]
     # the Σ‖e‖ the exported (final) policy reached: eval.json's
     want = json.load(open(os.path.join(run_dir, "eval.json")))["final_eval"][0]

@@ -21,10 +21,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ttd3_jax.run import rundir
+from ttd3_jax.run import spec as sp
 from ttd3_jax.sim import observation
 from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim import vehicle_mix as vm
-from ttd3_jax.sim.config import EnvConfig
+from ttd3_jax.sim.config import EnvConfig, TracksConfig
 from ttd3_jax.sim.env import thrust_range
 from ttd3_jax.sim.track_families import FAMILIES
 from ttd3_jax.sim.vehicles import vehicle_of
@@ -396,6 +397,7 @@ def sidecar(run_dir: str, run: rundir.LoadedRun, seed: int, best: bool, obs_size
                 rate_model=dict(name=quad.rate_model, meaning=RATE_MODEL_MEANING[quad.rate_model]),
                 evaluation_protocol=PROTOCOL, test_tracks=TEST_TRACKS,
                 trained_under=trained_under(run.env_config), vehicles=vehicles_spec(run.env_config),
+                env_config=dataclasses.asdict(run.env_config),
                 evaluated_on=list(dict.fromkeys(mix)) or [vehicle_of(quad) or "custom"],
                 expected_tracking_error=dict(sum_norm_e_m=expected_errors(run_dir, seed, epoch),
                                              protocol="evaluation_protocol above, float32"),
@@ -405,6 +407,24 @@ def sidecar(run_dir: str, run: rundir.LoadedRun, seed: int, best: bool, obs_size
                 files=dict(onnx="input obs [batch, n_obs] float32 -> output action [batch, 4]",
                            c="ttd3_policy_forward(const float *obs, float *action); also policy_forward "
                              "unless TTD3_NO_SHORT_NAMES is defined"))  # fmt: skip
+
+
+def env_config(meta: dict) -> EnvConfig:
+    """The run's (training) :class:`EnvConfig` that ``policy.json`` stores as ``env_config``, for
+    flying the policy in ``TrackingEnv`` (``cfg.for_eval(...)``: the protocol's nominal plant).
+    Users' training tracks are dropped (files of the training machine; no evaluation reads
+    them).  ``ValueError`` for a policy.json without one (exported by an older ttd3_jax)."""
+    d = meta.get("env_config")
+    if d is None:
+        raise ValueError(
+            "policy.json has no env_config (exported by an older ttd3_jax): export the run again"
+        )
+    tracks = {
+        **d.get("tracks", {}),
+        "train_tracks": [],
+        "train_tracks_weight": TracksConfig.train_tracks_weight,
+    }
+    return sp.task_from_dict({**d, "tracks": tracks})
 
 
 def write(out: str, p: Policy, meta: dict, onnx: bool = True) -> list[str]:

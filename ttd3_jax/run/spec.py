@@ -248,6 +248,21 @@ _DACITE = dacite.Config(
 )
 
 
+def task_from_dict(d: dict) -> EnvConfig:
+    """An :class:`EnvConfig` stored as ``dataclasses.asdict`` (config.json's ``task``,
+    policy.json's ``env_config``), rebuilt as :func:`from_dict` rebuilds the spec: every field
+    given, each value's type checked; ``ValueError`` names what is wrong."""
+    if not isinstance(d, dict):
+        raise ValueError(f"env config: must be a JSON object, got {type(d).__name__}")
+    missing = missing_fields(EnvConfig, d)
+    if missing:
+        raise ValueError(f"env config: field(s) {', '.join(missing)} missing")
+    try:
+        return dacite.from_dict(EnvConfig, d, config=_DACITE)
+    except dacite.DaciteError as e:
+        raise ValueError(f"env config: {e}") from None
+
+
 def from_dict(d: dict) -> RunSpec:
     """The spec stored by :func:`to_dict` (dacite builds the nested dataclasses and checks every
     value's type).  Raises ``ValueError`` for another format (:func:`check_format`), or naming
