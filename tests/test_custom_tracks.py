@@ -186,8 +186,10 @@ def test_users_training_tracks_join_the_mixture_and_nothing_else_changes(tmp_pat
     is_hop = np.all(np.abs(np.asarray(pb) - hop) < 1e-6, axis=(1, 2))
     assert 16 <= is_hop.sum() <= 48  # about half of 64
     np.testing.assert_allclose(pb[~is_hop], pa[~is_hop], atol=1e-5)  # the others: the mixture's own draws
+    nope = make_config("practical", train_tracks=("/nope.csv",))  # a run whose CSV moved still loads
     with pytest.raises(ValueError, match="train_tracks: '/nope.csv' is not a file"):
-        make_config("practical", train_tracks=("/nope.csv",))
+        TrackingEnv(nope)  # the training env reads it
+    assert TrackingEnv(nope, track_rows=1002).num_segments == 1002  # a reader's does not
     with pytest.raises(ValueError, match=r"train_tracks_weight must be a finite number in \(0, 1\], got 0.0"):
         make_config("practical", train_tracks=(path,), train_tracks_weight=0.0)
 

@@ -17,7 +17,9 @@ import pytest
 from experiment_scripts import experiment
 from tiny import tiny
 
+from ttd3_jax.cli import train
 from ttd3_jax.cli.evaluate import main
+from ttd3_jax.cli.export import main as export_main
 from ttd3_jax.control.closed_loop import closed_loop, evaluate_on_tracks, hover_controller, sensed_controller
 from ttd3_jax.control.closed_loop import test_tracks as make_test_tracks
 from ttd3_jax.control.evaluator import controller_build
@@ -34,6 +36,7 @@ from ttd3_jax.run import spec as sp
 from ttd3_jax.run.loop import run
 from ttd3_jax.run.report import TRACE_COLUMNS
 from ttd3_jax.run.sharding import per_seed
+from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import randomization as rz
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.dynamics import yaw_of
@@ -127,6 +130,37 @@ def test_cli_evaluates_a_saved_checkpoint(tmp_path, capsys):
     assert "Unrecognized options: --task.mass" in err
     assert main([run_dir, "--seed-index", "3"]) == 2
     assert main([str(tmp_path / "missing")]) == 2
+
+
+def test_a_run_whose_training_csv_moved_is_evaluated_and_exported_but_not_resumed(tmp_path, capsys):
+    """Issue 49: evaluate and export read a run whose training-track CSV has moved (neither
+    reads it; the training envs' track tables take the size its checkpoint holds), the same
+    policies as before; resuming, which trains on it, and training on it anew are refused in
+    one line naming the file."""
+    csv = str(tmp_path / "hop.csv")
+    ct.to_csv(ct.step((0.0, 0.0, 0.3), 1.0, name="hop"), csv)  # 1002 rows: more than the mixture's
+    base = tiny()
+    spec = sp.replace(base, task=base.task.replace(train_tracks=(csv,), train_tracks_weight=0.5))
+    run_dir = fake_run_dir(tmp_path / "run", spec)
+    (tmp_path / "run" / "metrics.csv").write_text("epoch,seed\n2,0\n")
+    theta = rundir.load_run(run_dir).thetas[0][1]
+    ckpt.save_policy(run_dir, 0, 2, 1.0, {"actor": theta[0], "obs_stats": theta[1]})
+    os.rename(csv, csv + ".moved")
+    for best in (False, True):
+        jax.tree.map(np.testing.assert_array_equal, rundir.load_run(run_dir, best=best).thetas[0][1], theta)
+    assert main([run_dir, "--no-timing", "--track", "spiral_rt", "--json", str(tmp_path / "e.json")]) == 0
+    assert export_main([run_dir, "--out", str(tmp_path / "policy"), "--no-onnx"]) == 0
+    assert os.path.isfile(tmp_path / "policy" / "policy.h")
+    assert ckpt.saved_track_rows(run_dir) == 1002 > TrackingEnv(base.task).num_segments  # what it is about
+    capsys.readouterr()
+    assert train.main(["--resume", run_dir]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"error: --resume {run_dir}: its training track {csv!r} is not a file (moved or "
+                   "deleted?); continuing the training reads the run's training tracks: put it back there "
+                   "(evaluate and export read the run without it)")  # fmt: skip
+    with pytest.raises(ValueError, match=f"task.tracks.train_tracks: {re.escape(repr(csv))} is not a file"):
+        run(spec, out=str(tmp_path / "runs"), verbose=False)
+    assert not (tmp_path / "runs").exists()  # refused before the run directory, before anything compiles
 
 
 def test_cli_trace_csv_holds_the_rollout_behind_the_metrics(tmp_path):

@@ -17,7 +17,7 @@ from ttd3_jax.checks import writable_dir
 from ttd3_jax.cli.console import show_messages
 from ttd3_jax.interop import policy as pe
 from ttd3_jax.run import rundir
-from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim import observation
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
               "without the critics' parts only (obs_privileged false)", file=sys.stderr)  # fmt: skip
         return 2
     seed, (actor, stats) = run.thetas[args.seed_index]
-    obs_size = TrackingEnv(run.env_config).observation_size
+    obs_size = observation.layout(run.env_config).size  # the env's, without reading its training tracks
     policy = pe.from_params(actor, stats, obs_size)
     meta = pe.sidecar(run_dir, run, seed, args.best, obs_size)
     try:

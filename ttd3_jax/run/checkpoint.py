@@ -255,6 +255,31 @@ def restore(mngr: ocp.CheckpointManager, epoch: int, like):
     return jax.tree.map(lambda o, x: np.zeros(x.shape, x.dtype) if _empty(x) else o, out, like)
 
 
+TRACK_TABLE = ("env_state", "pipeline_state", "track", "seg")  # the training envs' track tables
+
+
+def saved_track_rows(run_dir: str, epoch: int | None = None) -> int | None:
+    """The rows of the training envs' track tables (:data:`TRACK_TABLE`, its third axis from
+    the end) in checkpoint ``epoch`` of ``run_dir`` (default: the newest whose metadata reads),
+    from orbax's metadata alone; ``None`` when none reads."""
+    options = ocp.CheckpointManagerOptions(read_only=True, create=False)
+    folder = os.path.abspath(os.path.join(run_dir, "checkpoints"))
+    with _orbax_quiet():
+        mngr = ocp.CheckpointManager(folder, options=options, item_handlers=ocp.StandardCheckpointHandler())
+        try:
+            for e in sorted(mngr.all_steps(), reverse=True) if epoch is None else [epoch]:
+                try:  # orbax raises many kinds for a damaged checkpoint
+                    meta = mngr.item_metadata(e)
+                    for key in TRACK_TABLE:
+                        meta = meta[key]
+                    return int(meta.shape[-3])
+                except Exception:
+                    continue
+        finally:
+            mngr.close()
+    return None
+
+
 _EDITED = "config.json does not describe this run (was it edited?); put back the one it was trained with"
 
 

@@ -154,6 +154,7 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", *, resume: str | None
         if done:
             log(done)
             return {"run_dir": resume, "finished": True}
+        check_train_tracks(resume, spec)
     elif spec is None:
         raise ValueError("run() needs a RunSpec or a run directory to resume")
     else:
@@ -214,6 +215,18 @@ def finished_note(run_dir: str, spec: sp.RunSpec) -> str | None:
         return (f"{run_dir} finished all {spec.train.epochs} epochs (eval.json); nothing to resume. "
                 f"Evaluate it with python -m ttd3_jax.evaluate {run_dir}")  # fmt: skip
     return None
+
+
+def check_train_tracks(run_dir: str, spec: sp.RunSpec) -> None:
+    """Refuse to resume a run whose training-track CSV is no longer where it trained from:
+    training reads it (evaluation and export do not)."""
+    gone = [p for p in spec.task.tracks.train_tracks if not os.path.isfile(p)]
+    if gone:
+        raise FileNotFoundError(
+            f"--resume {run_dir}: its training track {gone[0]!r} is not a file (moved or deleted?); "
+            "continuing the training reads the run's training tracks: put it back there (evaluate and "
+            "export read the run without it)"
+        )
 
 
 def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> dict:

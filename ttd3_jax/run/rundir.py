@@ -198,10 +198,21 @@ class LoadedState(NamedTuple):
     skipped: list  # [(epoch, reason)] of newer checkpoints that did not load
 
 
+def reader_trainer(run_dir: str, spec: sp.RunSpec, epoch: int | None = None) -> Trainer:
+    """The run's trainer as a reader builds it (evaluation, export: they restore the run's
+    state, never train it): users' training tracks are not read, so a run whose CSV files
+    have moved still loads, and the training envs' track tables take the size its checkpoint
+    ``epoch`` (default: the newest) holds, so that the state restores (none readable: the
+    mixture's size, and the restore says what does not load)."""
+    if not (spec.is_quadrotor and spec.task.tracks.train_tracks):
+        return sp.trainer_for(spec)
+    return sp.trainer_for(spec, track_rows=ckpt.saved_track_rows(run_dir, epoch) or 0)
+
+
 def load_train_state(run_dir: str, epoch: int | None = None) -> LoadedState:
     """A run's checkpoint ``epoch`` (default: the newest that loads)."""
     spec = load_spec(run_dir)
-    trainer = sp.trainer_for(spec)
+    trainer = reader_trainer(run_dir, spec, epoch)
     keys = seed_keys(spec.seed, spec.num_seeds)
     like = jax.eval_shape(per_seed(trainer.init, spec.num_seeds, (0, None)), keys, spec.hp)
     epoch, state, skipped = ckpt.restore_newest(run_dir, like, epoch)
@@ -243,7 +254,7 @@ def load_run(run_dir: str, epoch: int | None = None, best: bool = False) -> Load
     spec = load_spec(run_dir)
     if not spec.is_quadrotor:
         raise ValueError(f"{run_dir!r} is a {spec.env!r} run; only quadrotor runs can be evaluated here")
-    setup = sp.trainer_for(spec).setup
+    setup = reader_trainer(run_dir, spec, epoch).setup
 
     def build(theta):
         actor, stats = theta

@@ -116,17 +116,20 @@ class RunSpec:
         return self.env == QUADROTOR
 
 
-def env_spec(spec: RunSpec) -> EnvSpec:
-    """The env the run trains on, with its evaluation."""
+def env_spec(spec: RunSpec, track_rows: int | None = None) -> EnvSpec:
+    """The env the run trains on, with its evaluation (``track_rows``: see :func:`trainer_for`)."""
     if spec.is_quadrotor:
-        return tasks.quadrotor(spec.task)
+        return tasks.quadrotor(spec.task, track_rows)
     b = spec.brax
     return tasks.brax(spec.env, b.backend, b.episode_length, b.eval_episodes)
 
 
-def trainer_for(spec: RunSpec) -> Trainer:
-    """The run's :class:`~ttd3_jax.td3.trainer.Trainer` (see ``make_trainer``)."""
-    return make_trainer(spec.train, env_spec(spec))
+def trainer_for(spec: RunSpec, track_rows: int | None = None) -> Trainer:
+    """The run's :class:`~ttd3_jax.td3.trainer.Trainer` (see ``make_trainer``).  ``track_rows``
+    (a reader of a run, :func:`ttd3_jax.run.rundir.reader_trainer`): the training envs' track
+    tables have this many rows and users' training tracks are not read (see
+    :class:`~ttd3_jax.sim.env.TrackingEnv`)."""
+    return make_trainer(spec.train, env_spec(spec, track_rows))
 
 
 def buffer_bytes(spec: RunSpec, obs_size: int, action_size: int) -> int:

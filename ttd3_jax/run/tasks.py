@@ -20,10 +20,11 @@ BACKENDS = ("mjx", "generalized", "positional", "spring")
 EVAL_KEY = 12345  # Brax evaluation episodes start from fixed keys
 
 
-def quadrotor(cfg: EnvConfig) -> EnvSpec:
+def quadrotor(cfg: EnvConfig, track_rows: int | None = None) -> EnvSpec:
     """The tracking env of ``cfg``, evaluated on the test and validation tracks
-    (:func:`~ttd3_jax.control.closed_loop.test_and_validation_metrics`)."""
-    env = TrackingEnv(cfg)
+    (:func:`~ttd3_jax.control.closed_loop.test_and_validation_metrics`); ``track_rows``: a
+    reader's, which does not read users' training tracks (:class:`TrackingEnv`)."""
+    env = TrackingEnv(cfg, track_rows=track_rows)
 
     def evaluate(policy):
         return test_and_validation_metrics(cfg, policy_controller(policy))

@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+import os
 
 import jax
 import jax.numpy as jnp
@@ -206,7 +207,9 @@ LONG_TRACK = 100  # a training track may last this many times the reference an e
 def _training_track(c: EnvConfig, path: str) -> tr.Track:
     """A user's training track, refused when it lasts over :data:`LONG_TRACK` times the reference
     an episode flies: every env keeps the longest track's whole table, so the rest only costs
-    memory and speed."""
+    memory and speed.  A path that is not a file is refused, naming it."""
+    if not os.path.isfile(path):
+        raise ValueError(f"task.tracks.train_tracks: {path!r} is not a file; allowed: CSV track files")
     track = ct.from_csv(path, dt=c.dt)
     flown = c.horizon_steps * c.dt
     if track.duration_s > LONG_TRACK * flown:
@@ -221,9 +224,14 @@ class TrackingEnv(Env):
 
     Works with Brax's ``VmapWrapper``, ``EpisodeWrapper`` and ``AutoResetWrapper``.
     (Brax's auto-reset replays each env's first reset state, hence its first track.)
+
+    ``track_rows`` (with ``train_tracks``): build the training env of a run that is read, not
+    trained (evaluation, export): users' CSV files are not read (they may have moved since),
+    and the track tables take the size the run saved, ``track_rows``, at least the mixture's.
+    Its shapes are the trained env's; its draws leave the users' tracks out.
     """
 
-    def __init__(self, config: EnvConfig | None = None, **overrides):
+    def __init__(self, config: EnvConfig | None = None, *, track_rows: int | None = None, **overrides):
         config = config or make_config("paper")
         if overrides:
             config = config.replace(**overrides)
@@ -234,7 +242,9 @@ class TrackingEnv(Env):
         else:
             self._n_seg = tr.num_segments_for(c.horizon_steps, c.tracks.generator.los_segment_steps)
         self._user = None  # users' training tracks, stacked, with the mixture's table size
-        if c.tracks.track == "train" and c.tracks.train_tracks:
+        if c.tracks.track == "train" and c.tracks.train_tracks and track_rows is not None:
+            self._n_seg = max(self._n_seg, track_rows)
+        elif c.tracks.track == "train" and c.tracks.train_tracks:
             user = [_training_track(c, p) for p in c.tracks.train_tracks]
             self._mix_n, self._n_seg = self._n_seg, max(self._n_seg, *(t.num_segments for t in user))
             self._user = jax.tree.map(lambda *x: jnp.stack(x), *(ct.pad(t, self._n_seg, c.dt) for t in user))
