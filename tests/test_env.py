@@ -105,6 +105,21 @@ def test_squared_error_cost_option():
     np.testing.assert_allclose(float(s2.reward), -(e**2), rtol=1e-5)
 
 
+def test_action_rate_cost_compares_with_the_last_action_and_needs_the_memory():
+    """rho_rate adds rho_rate ||a − a_prev||² per physics step, a_prev the last commanded action
+    (obs_memory's last_action, which the policy sees); without the memory it is refused."""
+    env = TrackingEnv(make_config("paper", obs_memory=True, rho_rate=0.5).for_eval("spiral_rt"))
+    base = TrackingEnv(make_config("paper", obs_memory=True).for_eval("spiral_rt"))
+    a1, a2 = jnp.array([0.2, -0.3, 0.1, 0.4]), jnp.array([0.1, 0.3, 0.1, -0.2])
+    s, b = env.reset(jax.random.PRNGKey(0)), base.reset(jax.random.PRNGKey(0))
+    s, b = env.step(s, a1), base.step(b, a1)  # from the reset's last action, zeros
+    np.testing.assert_allclose(float(s.reward), float(b.reward) - 0.5 * float(jnp.sum(a1 * a1)), rtol=1e-5)
+    s, b = env.step(s, a2), base.step(b, a2)
+    np.testing.assert_allclose(float(s.reward), float(b.reward) - 0.5 * float(jnp.sum((a2 - a1) ** 2)), rtol=1e-5)
+    with pytest.raises(ValueError, match=r"EnvConfig.reward.rho_rate must be 0 without observation.obs_memory"):
+        make_config("paper", rho_rate=0.5)
+
+
 def test_crash_terminates_with_penalty():
     env = TrackingEnv(make_config("paper", track="spiral_rt", randomize_init=False))
     s = with_quad(env, env.reset(jax.random.PRNGKey(0)), 10, spiral_np(10) + [2.5, 0, 0])

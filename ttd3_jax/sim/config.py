@@ -137,6 +137,7 @@ class RewardConfig:
     err_scale: Annotated[float, Suppress] = 0.02  # m, ε of err_cost="log"
     rho1: float = 1.0
     rho2: float = 0.01
+    rho_rate: float = 0.0  # weight of the action-rate cost ||a_k − a_k−1||² per physics step (needs obs_memory)
     effort_weights: Annotated[tuple[float, float, float, float], Suppress] = (1.0, 1.0, 1.0, 1.0)  # diag Ω
     effort_hover_relative: Annotated[bool, Suppress] = False  # penalise (a - a_hover) instead of a
     terminate: Annotated[bool, Suppress] = True
@@ -149,6 +150,7 @@ class RewardConfig:
         for name in ("e_max", "rho1", "err_scale"):
             checks.number(f(name), getattr(self, name), 0, lo_open=True)
         checks.number(f("rho2"), self.rho2, 0)
+        checks.number(f("rho_rate"), self.rho_rate, 0)
         if self.crash_penalty is not None:
             checks.number(f("crash_penalty"), self.crash_penalty, 0, unit=" or None")
         checks.one_of(f("err_cost"), self.err_cost, ERR_COSTS)
@@ -409,6 +411,9 @@ def _validate(c: EnvConfig) -> None:
     if not c.tracks.train_tracks and c.tracks.train_tracks_weight != TracksConfig.train_tracks_weight:
         why = f"{TracksConfig.train_tracks_weight} without train_tracks (the share of episodes that fly them)"
         checks.fail("EnvConfig.tracks.train_tracks_weight", why, c.tracks.train_tracks_weight)
+    if c.reward.rho_rate > 0 and not c.observation.obs_memory:
+        checks.fail("EnvConfig.reward.rho_rate", "0 without observation.obs_memory (the policy must see the "
+                    "last action its cost compares with)", c.reward.rho_rate)  # fmt: skip
     if c.observation.obs_memory and c.disturbances.action_delay:
         raise ValueError(
             "EnvConfig.observation.obs_memory needs disturbances.action_delay 0 (the delayed env keeps "

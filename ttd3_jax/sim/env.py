@@ -345,7 +345,7 @@ class TrackingEnv(Env):
         if c.disturbances.action_delay:
             a, ps = ps.prev_action, ps.replace(prev_action=a)
         u = action_to_control(c, a)  # the action map of the config's (nominal) vehicle
-        effort = self._effort(a)
+        effort = self._effort(a, ps)
         zero = jnp.zeros((), ps.quad.p.dtype)
         carry = (ps.quad, ps.k, ps.wind, ps.key, zero, zero, jnp.zeros((), bool))
         quad = state.info.get("vehicle", c.vehicle.quad)  # the vehicle flown
@@ -372,7 +372,7 @@ class TrackingEnv(Env):
         else:
             u = jnp.broadcast_to(action_to_control(c, a, known), (c.action_repeat, 4))
         u = clip_control(plant.quad, u.at[:, 0].multiply(plant.thrust_gain))
-        effort = self._effort(a)  # of the commanded action
+        effort = self._effort(a, ps)  # of the commanded action
         zero = jnp.zeros((), ps.quad.p.dtype)
         carry = (ps.quad, ps.k, ps.wind, ps.key, zero, zero, jnp.zeros((), bool))
         wind_mean = plant.wind_mean if c.randomization.wind_mean > 0 else None
@@ -431,7 +431,7 @@ class TrackingEnv(Env):
             renormalize=c.vehicle.renormalize,
         )
         k = k + 1
-        step_r = -c.reward.rho2 * effort
+        step_r = -effort
         if p_ref is None:
             p_ref = tr.position(track, k, c.dt)
         e = jnp.linalg.norm(p_ref - quad.p)
@@ -442,12 +442,16 @@ class TrackingEnv(Env):
         crashed = crashed | ~finite | (e > c.reward.e_max)
         return (quad, k, wind, key, reward, err_sum, crashed), p_ref
 
-    def _effort(self, a: jax.Array) -> jax.Array:
+    def _effort(self, a: jax.Array, ps: TrackingState) -> jax.Array:
+        """The action's cost per physics step: rho2 aᵀΩa, plus rho_rate ||a − a_prev||² (the
+        action the last control step commanded, ``obs_memory``'s ``last_action``)."""
         c = self.config
+        change = a - ps.last_action if c.reward.rho_rate > 0 else None
         if c.reward.effort_hover_relative:
             a = a - hover_action(c).astype(a.dtype)
         w = jnp.asarray(self._effort_w, a.dtype)
-        return jnp.sum(w * a * a)
+        cost = c.reward.rho2 * jnp.sum(w * a * a)
+        return cost if change is None else cost + c.reward.rho_rate * jnp.sum(change * change)
 
     def _initial_state(self, rng: jax.Array, p0: jax.Array) -> QuadState:
         c = self.config

@@ -1,0 +1,131 @@
+"""Which training recipe flies a real vehicle's inner loop: each variant of the ``cf2`` preset
+trained on 3 seeds, each seed's selected policy exported and flown in crazyflow through the
+firmware's rate loop (``experiments/transfer_crazyflow.py``, in the crazyflow venv).
+
+Per variant and seed: Σ‖e‖ in our simulator on Spiral-RT and LOS-RT (nominal), and on
+crazyflow the crashes, the largest ratio to our simulator and how many tracks beat crazyflow's
+Mellinger controller, over Spiral-RT, LOS-RT seeds 0-4 and the 0.5 m circle (issue 50's
+criteria).  Variants (``VARIANTS``): the preset; with an action-rate cost; without memory
+(no last action, error integral or integral action: no identification in context); without
+the inner loop in training (``robust``, instant rates).
+
+    python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
+    python experiments/transfer_recipes.py --out DIR --variants cf2 action_rate     # some
+    python experiments/transfer_recipes.py --out DIR --quick                        # tiny budget, 1 track
+
+Each variant's runs and flights stay under ``OUT/<variant>``; a variant whose ``summary.json``
+exists there is read back, not trained again (delete the folder to redo it).  ``OUT/table.md``
+and ``OUT/recipes.json`` collect them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import subprocess
+import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+TRACKS = ("spiral_rt", *(f"los_rt_seed{s:02d}" for s in range(5)), "circle_r0.5")
+NO_MEMORY = ["--task.observation.no-obs-memory", "--task.observation.ref-integral-gain", "0"]
+VARIANTS = {
+    "cf2": ("the cf2 preset", ["--preset", "cf2"]),
+    "action_rate": ("+ action-rate cost 0.1 ||Δa||²", ["--preset", "cf2", "--task.reward.rho-rate", "0.1"]),
+    "no_memory": ("- memory and integral action", ["--preset", "cf2", *NO_MEMORY]),
+    "instant": ("trained with instant rates (robust)", ["--preset", "robust"]),
+}
+PAPER = {"spiral_rt": 25.99, "los_rt_seed00": 398.74}
+
+
+def sh(cmd: list[str], log: str) -> None:
+    """Run ``cmd`` from the repository root, its output appended to ``log``; raise on failure."""
+    with open(log, "a") as fh:
+        fh.write("$ " + " ".join(cmd) + "\n")
+        fh.flush()
+        if subprocess.run(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT).returncode:
+            raise SystemExit(f"error: {' '.join(cmd[:4])} ... failed; see {log}")
+
+
+def run_variant(name: str, out: str, cf_python: str, quick: bool) -> dict:
+    """Train variant ``name``, export and fly its seeds; its summary (also in summary.json)."""
+    folder = os.path.join(out, name)
+    done = os.path.join(folder, "summary.json")
+    if os.path.isfile(done):
+        return json.load(open(done))
+    os.makedirs(folder, exist_ok=True)
+    log = os.path.join(folder, "log.txt")
+    flags = VARIANTS[name][1] + (["--total-transitions", "30000", "--epochs", "2"] if quick else [])
+    sh([sys.executable, "-m", "ttd3_jax.train", *flags, "--out", os.path.join(folder, "runs")], log)
+    (run_dir,) = glob.glob(os.path.join(folder, "runs", "*"))
+    num_seeds = json.load(open(os.path.join(run_dir, "config.json")))["num_seeds"]
+    tracks = TRACKS[:1] if quick else TRACKS
+    seeds = []
+    for i in range(num_seeds):
+        policy = os.path.join(folder, f"seed{i}")
+        sh([sys.executable, "-m", "ttd3_jax.export", run_dir, "--best", "--seed-index", str(i), "--out", policy], log)
+        flight = os.path.join(policy, "transfer.json")
+        sh([cf_python, "experiments/transfer_crazyflow.py", policy, "--tracks", *tracks, "--json", flight], log)
+        seeds.append(seed_summary(json.load(open(flight))["tracks"]))
+    summary = {"variant": name, "description": VARIANTS[name][0], "flags": flags, "run_dir": run_dir, "seeds": seeds}
+    json.dump(summary, open(done, "w"), indent=2)
+    return summary
+
+
+def seed_summary(tracks: dict) -> dict:
+    """One seed's figures from the harness's per-track results."""
+    ratio = {k: t["tracking_error"] / t["own_sim_tracking_error"] for k, t in tracks.items()}
+    beats = [k for k, t in tracks.items() if t["tracking_error"] < t["mellinger_tracking_error"]]
+    return dict(own_spiral=tracks["spiral_rt"]["own_sim_tracking_error"],
+                own_los=tracks.get("los_rt_seed00", {}).get("own_sim_tracking_error"),
+                crashes=[k for k, t in tracks.items() if t["crashed"]], max_ratio=max(ratio.values()),
+                worst=max(ratio, key=ratio.get), beats_mellinger=len(beats), tracks=len(tracks),
+                crazyflow={k: t["tracking_error"] for k, t in tracks.items()})  # fmt: skip
+
+
+def table(summaries: list[dict]) -> str:
+    """One row per variant and seed."""
+    rows = ["| variant | seed | own Spiral-RT | own LOS-RT | crazyflow crashes | max ratio (track) | "
+            "beats Mellinger |", "|---|---:|---:|---:|---|---|---:|"]  # fmt: skip
+    for s in summaries:
+        for i, r in enumerate(s["seeds"]):
+            los = "" if r["own_los"] is None else f"{r['own_los']:.2f}"
+            crashes = ", ".join(r["crashes"]) or "none"
+            rows.append(f"| {s['description']} | {i} | {r['own_spiral']:.2f} | {los} | {crashes} | "
+                        f"{r['max_ratio']:.2f} ({r['worst']}) | {r['beats_mellinger']}/{r['tracks']} |")  # fmt: skip
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python experiments/transfer_recipes.py", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", required=True, help="folder for the runs, flights and tables")
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), help=f"some of {list(VARIANTS)}")
+    ap.add_argument("--crazyflow-python", default=os.path.join(ROOT, ".venv-crazyflow", "bin", "python"),
+                    help="python of the crazyflow venv (pip install -e '.[transfer]')")  # fmt: skip
+    ap.add_argument("--quick", action="store_true", help="tiny budget and one track (a smoke test)")
+    a = ap.parse_args(argv)
+    bad = [v for v in a.variants if v not in VARIANTS]
+    if bad:
+        print(f"error: --variants {bad[0]!r} is not a variant; allowed: {list(VARIANTS)}", file=sys.stderr)
+        return 2
+    if not os.path.isfile(a.crazyflow_python):
+        print(f"error: --crazyflow-python {a.crazyflow_python!r} is not a file; allowed: the python of a venv "
+              "with pip install -e '.[transfer]'", file=sys.stderr)  # fmt: skip
+        return 2
+    os.makedirs(a.out, exist_ok=True)
+    summaries = []
+    for name in a.variants:
+        print(f"{name}: {VARIANTS[name][0]} ...", flush=True)
+        summaries.append(run_variant(name, a.out, a.crazyflow_python, a.quick))
+        print(table(summaries[-1:]), flush=True)
+    text = table(summaries)
+    open(os.path.join(a.out, "table.md"), "w").write(text + "\n")
+    json.dump(summaries, open(os.path.join(a.out, "recipes.json"), "w"), indent=2)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
