@@ -84,10 +84,10 @@ def main(argv: list[str] | None = None) -> int:
     seed, (actor, stats) = run.thetas[args.seed_index]
     obs_size = TrackingEnv(run.env_config).observation_size
     policy = pe.from_params(actor, stats, obs_size)
-    meta = pe.sidecar(run_dir, run, seed, args.best, obs_size)
     try:
+        meta = pe.sidecar(run_dir, run, seed, args.best, obs_size)
         written = pe.write(args.out, policy, meta, onnx=not args.no_onnx)
-    except ValueError as e:  # non-finite weights
+    except ValueError as e:  # non-finite weights, an observation part policy.h cannot build
         print(f"error: {e}", file=sys.stderr)
         return 2
     except OSError as e:
