@@ -1,6 +1,7 @@
 """Policy export: the ONNX model and the C header compute the JAX actor (normalisation
-included), a closed loop flown by the ONNX model reproduces the run's eval.json, and bad
-input is refused before anything loads."""
+included), the header's ttd3_step flies the run's env as the JAX actor does, a closed loop
+flown by the ONNX model reproduces the run's eval.json, and bad input is refused before
+anything loads."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from experiment_scripts import experiment
+from test_policy_header import fly_against_c
 from tiny import tiny
 
 from ttd3_jax.cli.evaluate import main as evaluate_main
@@ -76,6 +78,20 @@ def test_the_c_header_compiles_and_reproduces_the_jax_actor(exported, tmp_path):
     for o, a in zip(obs, got, strict=True):
         shim(o.ctypes.data_as(ctypes.c_void_p), a.ctypes.data_as(ctypes.c_void_p))
     np.testing.assert_allclose(got, np.asarray(policy(jnp.asarray(obs))), atol=1e-5, rtol=0)
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+def test_the_c_headers_step_flies_the_runs_env_as_the_jax_actor_does(exported, tmp_path):
+    """policy.h's ttd3_step, given each control step's measured state and reference points of a
+    flight of the run's env (fast's observation: nothing kept), builds the env's observation
+    and the JAX actor's action."""
+    run_dir, out = exported
+    loaded, policy = jax_policy(run_dir)
+    api = json.load(open(os.path.join(out, "policy.json")))["c_api"]
+    header = open(os.path.join(out, "policy.h")).read()
+    assert api["state"] == [] and api["reference_points"] == {"now": 0, "ahead": 50}
+    assert "\n".join(f" * {line}".rstrip() for line in api["call_order"]) in header
+    fly_against_c(loaded.env_config, api, header, lambda obs: policy(jnp.asarray(obs)), tmp_path)
 
 
 def test_a_closed_loop_flown_by_the_onnx_model_reproduces_eval_json(exported):

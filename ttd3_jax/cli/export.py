@@ -84,10 +84,10 @@ def main(argv: list[str] | None = None) -> int:
     seed, (actor, stats) = run.thetas[args.seed_index]
     obs_size = observation.layout(run.env_config).size  # the env's, without reading its training tracks
     policy = pe.from_params(actor, stats, obs_size)
-    meta = pe.sidecar(run_dir, run, seed, args.best, obs_size)
     try:
+        meta = pe.sidecar(run_dir, run, seed, args.best, obs_size)
         written = pe.write(args.out, policy, meta, onnx=not args.no_onnx)
-    except ValueError as e:  # non-finite weights
+    except ValueError as e:  # non-finite weights, an observation part policy.h cannot build
         print(f"error: {e}", file=sys.stderr)
         return 2
     except OSError as e:
