@@ -5,17 +5,18 @@ firmware's rate loop (``experiments/transfer_crazyflow.py``, in the crazyflow ve
 Per variant and seed: Σ‖e‖ in our simulator on Spiral-RT and LOS-RT (nominal), and on
 crazyflow the crashes, the largest ratio to our simulator and how many tracks beat crazyflow's
 Mellinger controller, over Spiral-RT, LOS-RT seeds 0-4 and the 0.5 m circle (issue 50's
-criteria).  Variants (``VARIANTS``): the preset; with an action-rate cost; without memory
-(no last action, error integral or integral action: no identification in context); without
-the inner loop in training (``robust``, instant rates).
+criteria).  Variants (``VARIANTS``): the preset; with a heading cost, an action-rate cost, or both;
+without memory (no last action, error integral or integral action: no identification in
+context); without the inner loop in training (``robust``, instant rates).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
     python experiments/transfer_recipes.py --out DIR --variants cf2 action_rate     # some
     python experiments/transfer_recipes.py --out DIR --quick                        # tiny budget, 1 track
 
-Each variant's runs and flights stay under ``OUT/<variant>``; a variant whose ``summary.json``
-exists there is read back, not trained again (delete the folder to redo it).  ``OUT/table.md``
-and ``OUT/recipes.json`` collect them.
+Each variant's run and flights stay under ``OUT/<variant>`` (``flags.json`` records its flags;
+other flags are refused): a run found there is resumed if it did not finish, and a seed whose
+``transfer.json`` exists is read back, so a killed sweep continues where it stopped (delete a
+folder to redo it).  ``OUT/table.md`` and ``OUT/recipes.json`` collect the variants.
 """
 
 from __future__ import annotations
@@ -31,9 +32,12 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 TRACKS = ("spiral_rt", *(f"los_rt_seed{s:02d}" for s in range(5)), "circle_r0.5")
 NO_MEMORY = ["--task.observation.no-obs-memory", "--task.observation.ref-integral-gain", "0"]
+YAW, RATE = ["--task.reward.rho-yaw", "0.1"], ["--task.reward.rho-rate", "1.0"]
 VARIANTS = {
     "cf2": ("the cf2 preset", ["--preset", "cf2"]),
-    "action_rate": ("+ action-rate cost 0.1 ||Δa||²", ["--preset", "cf2", "--task.reward.rho-rate", "0.1"]),
+    "yaw": ("+ heading cost 0.1 ψ²", ["--preset", "cf2", *YAW]),
+    "action_rate": ("+ action-rate cost 1.0 ||Δa||²", ["--preset", "cf2", *RATE]),
+    "yaw_action_rate": ("+ both", ["--preset", "cf2", *YAW, *RATE]),
     "no_memory": ("- memory and integral action", ["--preset", "cf2", *NO_MEMORY]),
     "instant": ("trained with instant rates (robust)", ["--preset", "robust"]),
 }
@@ -50,27 +54,52 @@ def sh(cmd: list[str], log: str) -> None:
 
 
 def run_variant(name: str, out: str, cf_python: str, quick: bool) -> dict:
-    """Train variant ``name``, export and fly its seeds; its summary (also in summary.json)."""
+    """Train variant ``name`` (or resume its run), export and fly each seed (a seed whose
+    ``transfer.json`` exists is read back); its summary (also in summary.json)."""
     folder = os.path.join(out, name)
-    done = os.path.join(folder, "summary.json")
-    if os.path.isfile(done):
-        return json.load(open(done))
-    os.makedirs(folder, exist_ok=True)
-    log = os.path.join(folder, "log.txt")
     flags = VARIANTS[name][1] + (["--total-transitions", "30000", "--epochs", "2"] if quick else [])
-    sh([sys.executable, "-m", "ttd3_jax.train", *flags, "--out", os.path.join(folder, "runs")], log)
+    os.makedirs(folder, exist_ok=True)
+    made = os.path.join(folder, "flags.json")
+    if os.path.isfile(made) and json.load(open(made)) != flags:
+        raise SystemExit(f"error: {folder} was made with other flags ({json.load(open(made))}); delete it")
+    json.dump(flags, open(made, "w"))
+    log = os.path.join(folder, "log.txt")
+    runs = glob.glob(os.path.join(folder, "runs", "*"))
+    if not runs:
+        sh([sys.executable, "-m", "ttd3_jax.train", *flags, "--out", os.path.join(folder, "runs")], log)
+    elif json.load(open(os.path.join(runs[0], "state.json"))).get("state") != "finished":
+        sh([sys.executable, "-m", "ttd3_jax.train", "--resume", runs[0]], log)
     (run_dir,) = glob.glob(os.path.join(folder, "runs", "*"))
     num_seeds = json.load(open(os.path.join(run_dir, "config.json")))["num_seeds"]
     tracks = TRACKS[:1] if quick else TRACKS
     seeds = []
     for i in range(num_seeds):
         policy = os.path.join(folder, f"seed{i}")
-        sh([sys.executable, "-m", "ttd3_jax.export", run_dir, "--best", "--seed-index", str(i), "--out", policy], log)
         flight = os.path.join(policy, "transfer.json")
-        sh([cf_python, "experiments/transfer_crazyflow.py", policy, "--tracks", *tracks, "--json", flight], log)
+        if not os.path.isfile(flight):
+            export = ["-m", "ttd3_jax.export", run_dir, "--best", "--seed-index", str(i), "--out", policy]
+            sh([sys.executable, *export], log)
+            sh(
+                [
+                    cf_python,
+                    "experiments/transfer_crazyflow.py",
+                    policy,
+                    "--tracks",
+                    *tracks,
+                    "--json",
+                    flight,
+                ],
+                log,
+            )
         seeds.append(seed_summary(json.load(open(flight))["tracks"]))
-    summary = {"variant": name, "description": VARIANTS[name][0], "flags": flags, "run_dir": run_dir, "seeds": seeds}
-    json.dump(summary, open(done, "w"), indent=2)
+    summary = {
+        "variant": name,
+        "description": VARIANTS[name][0],
+        "flags": flags,
+        "run_dir": run_dir,
+        "seeds": seeds,
+    }
+    json.dump(summary, open(os.path.join(folder, "summary.json"), "w"), indent=2)
     return summary
 
 
@@ -93,13 +122,16 @@ def table(summaries: list[dict]) -> str:
         for i, r in enumerate(s["seeds"]):
             los = "" if r["own_los"] is None else f"{r['own_los']:.2f}"
             crashes = ", ".join(r["crashes"]) or "none"
-            rows.append(f"| {s['description']} | {i} | {r['own_spiral']:.2f} | {los} | {crashes} | "
-                        f"{r['max_ratio']:.2f} ({r['worst']}) | {r['beats_mellinger']}/{r['tracks']} |")  # fmt: skip
+            ratio, beats = f"{r['max_ratio']:.2f} ({r['worst']})", f"{r['beats_mellinger']}/{r['tracks']}"
+            cells = (s["description"], str(i), f"{r['own_spiral']:.2f}", los, crashes, ratio, beats)
+            rows.append("| " + " | ".join(cells) + " |")
     return "\n".join(rows)
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python experiments/transfer_recipes.py", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="python experiments/transfer_recipes.py", description=__doc__.split("\n\n")[0]
+    )
     ap.add_argument("--out", required=True, help="folder for the runs, flights and tables")
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), help=f"some of {list(VARIANTS)}")
     ap.add_argument("--crazyflow-python", default=os.path.join(ROOT, ".venv-crazyflow", "bin", "python"),
@@ -111,8 +143,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: --variants {bad[0]!r} is not a variant; allowed: {list(VARIANTS)}", file=sys.stderr)
         return 2
     if not os.path.isfile(a.crazyflow_python):
-        print(f"error: --crazyflow-python {a.crazyflow_python!r} is not a file; allowed: the python of a venv "
-              "with pip install -e '.[transfer]'", file=sys.stderr)  # fmt: skip
+        print(f"error: --crazyflow-python {a.crazyflow_python!r} is not a file; allowed: the python of a "
+              "venv with pip install -e '.[transfer]'", file=sys.stderr)  # fmt: skip
         return 2
     os.makedirs(a.out, exist_ok=True)
     summaries = []

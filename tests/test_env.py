@@ -115,9 +115,24 @@ def test_action_rate_cost_compares_with_the_last_action_and_needs_the_memory():
     s, b = env.step(s, a1), base.step(b, a1)  # from the reset's last action, zeros
     np.testing.assert_allclose(float(s.reward), float(b.reward) - 0.5 * float(jnp.sum(a1 * a1)), rtol=1e-5)
     s, b = env.step(s, a2), base.step(b, a2)
-    np.testing.assert_allclose(float(s.reward), float(b.reward) - 0.5 * float(jnp.sum((a2 - a1) ** 2)), rtol=1e-5)
-    with pytest.raises(ValueError, match=r"EnvConfig.reward.rho_rate must be 0 without observation.obs_memory"):
+    np.testing.assert_allclose(
+        float(s.reward), float(b.reward) - 0.5 * float(jnp.sum((a2 - a1) ** 2)), rtol=1e-5
+    )
+    with pytest.raises(
+        ValueError, match=r"EnvConfig.reward.rho_rate must be 0 without observation.obs_memory"
+    ):
         make_config("paper", rho_rate=0.5)
+
+
+def test_heading_cost_is_rho_yaw_times_the_yaw_squared_after_each_physics_step():
+    yaw = 0.3
+    q = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+    env, base = spiral_env(rho_yaw=2.0), spiral_env()
+    s = with_quad(env, env.reset(jax.random.PRNGKey(0)), 100, spiral_np(100), q=q)
+    b = with_quad(base, base.reset(jax.random.PRNGKey(0)), 100, spiral_np(100), q=q)
+    a = hover_action(env.config)
+    s, b = env.step(s, a), base.step(b, a)
+    np.testing.assert_allclose(float(s.reward), float(b.reward) - 2.0 * yaw**2, rtol=1e-4)
 
 
 def test_crash_terminates_with_penalty():

@@ -183,7 +183,9 @@ def preset(name: str, **changes) -> RunSpec:
             base = RunSpec(train=train, hp=hp, task=task.replace(**ROBUST_TASK), num_seeds=3)
         if name == "cf2":  # twice the transitions at a third of the actor's learning rate
             train = dataclasses.replace(train, total_transitions=3_200_000, epochs=20)
-            base = RunSpec(train=train, hp=hp.replace(lr_actor=3e-3), task=task.replace(**CF2_TASK), num_seeds=3)
+            base = RunSpec(
+                train=train, hp=hp.replace(lr_actor=3e-3), task=task.replace(**CF2_TASK), num_seeds=3
+            )
     elif name == "mujoco":
         train = TrainConfig(num_envs=1, total_transitions=1_000_000, warmup_transitions=25_000,
                             buffer_size=1_000_000, updates_per_step=1, epochs=200)  # fmt: skip

@@ -137,7 +137,10 @@ class RewardConfig:
     err_scale: Annotated[float, Suppress] = 0.02  # m, ε of err_cost="log"
     rho1: float = 1.0
     rho2: float = 0.01
-    rho_rate: float = 0.0  # weight of the action-rate cost ||a_k − a_k−1||² per physics step (needs obs_memory)
+    rho_rate: float = (
+        0.0  # weight of the action-rate cost ||a_k − a_k−1||² per physics step (needs obs_memory)
+    )
+    rho_yaw: float = 0.0  # weight of the heading cost ψ² (rad², the yaw of q) per physics step
     effort_weights: Annotated[tuple[float, float, float, float], Suppress] = (1.0, 1.0, 1.0, 1.0)  # diag Ω
     effort_hover_relative: Annotated[bool, Suppress] = False  # penalise (a - a_hover) instead of a
     terminate: Annotated[bool, Suppress] = True
@@ -151,6 +154,7 @@ class RewardConfig:
             checks.number(f(name), getattr(self, name), 0, lo_open=True)
         checks.number(f("rho2"), self.rho2, 0)
         checks.number(f("rho_rate"), self.rho_rate, 0)
+        checks.number(f("rho_yaw"), self.rho_yaw, 0)
         if self.crash_penalty is not None:
             checks.number(f("crash_penalty"), self.crash_penalty, 0, unit=" or None")
         checks.one_of(f("err_cost"), self.err_cost, ERR_COSTS)

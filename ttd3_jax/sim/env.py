@@ -17,7 +17,9 @@ Reward per physics step, with e' = ||p_d,k+1 - p_k+1|| after the step (R1-R3)::
 
     r = -rho1 * r_e(e') - rho2 * aᵀ Ω a,   r_e(e) = e if e² <= 1 else e²
 
-summed over the ``action_repeat`` physics steps.  An episode terminates (crash)
+summed over the ``action_repeat`` physics steps (not in the paper, 0 by default: minus
+``rho_rate`` ||a − a_prev||², the change from the last control step's action, and minus
+``rho_yaw`` ψ'², the heading after the step).  An episode terminates (crash)
 when e' > ``e_max`` or the state is not finite, with reward ``-crash_cost``,
 and is truncated (``info["truncation"] = 1``) after ``episode_steps`` physics steps.
 """
@@ -52,6 +54,7 @@ from ttd3_jax.sim.dynamics import (
     quat_from_axis_angle,
     quat_mul,
     rk4_step,
+    yaw_of,
 )
 from ttd3_jax.sim.env_state import (
     DelayedTrackingState,
@@ -437,6 +440,8 @@ class TrackingEnv(Env):
         e = jnp.linalg.norm(p_ref - quad.p)
         finite = jnp.isfinite(e) & _finite(quad)
         step_r = step_r - c.reward.rho1 * error_cost(c, e)
+        if c.reward.rho_yaw > 0:  # hold the heading the tracks are flown at (ψ = 0)
+            step_r = step_r - c.reward.rho_yaw * jnp.square(yaw_of(quad.q))
         reward = reward + jnp.where(~crashed & finite, step_r, 0.0)
         err_sum = err_sum + jnp.where(finite, e, jnp.inf)
         crashed = crashed | ~finite | (e > c.reward.e_max)
