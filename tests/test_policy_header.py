@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from ttd3_jax.interop import c_header as ch
 from ttd3_jax.interop import policy as pe
 from ttd3_jax.run import spec as sp
 from ttd3_jax.sim import observation
@@ -38,7 +39,7 @@ no_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
      (2.0**-149, "1.40129846e-45f"), (0.5, "0.5f"), (16777216.0, "16777216.0f")],
 )  # fmt: skip
 def test_every_weight_is_a_c_float_literal_that_reads_back_exactly(v, want):
-    assert pe.c_float(v) == want
+    assert ch.c_float(v) == want
     assert np.float32(float(want[:-1])) == np.float32(v)
 
 
@@ -46,7 +47,7 @@ def test_literals_of_random_float32_read_back_exactly():
     x = np.random.default_rng(0).standard_normal(2000).astype(np.float32) * np.float32(10.0) ** np.arange(
         -37, 37, 0.037, dtype=np.float32
     )
-    lits = [pe.c_float(v) for v in x]
+    lits = [ch.c_float(v) for v in x]
     assert all(re.fullmatch(r"-?\d+(\.\d*)?(e[+-]\d+)?f|-?\d+e[+-]\d+f", s) and ("." in s or "e" in s)
                for s in lits)  # fmt: skip
     np.testing.assert_array_equal(np.array([float(s[:-1]) for s in lits], np.float32), x)
@@ -67,7 +68,7 @@ def awkward_policy() -> pe.Policy:
 @pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
 def test_a_header_of_awkward_weights_compiles_and_matches_numpy(tmp_path):
     p = awkward_policy()
-    (tmp_path / "policy.h").write_text(pe.c_header(p))
+    (tmp_path / "policy.h").write_text(ch.c_header(p))
     src = tmp_path / "shim.c"
     src.write_text(
         '#include "policy.h"\nvoid shim(const float *o, float *a) { ttd3_policy_forward(o, a); }\n'
@@ -97,7 +98,7 @@ def test_non_finite_weights_are_refused_and_nothing_is_written(tmp_path, bad):
 
 
 def test_the_readme_and_policy_json_name_the_header_function():
-    header = pe.c_header(awkward_policy())
+    header = ch.c_header(awkward_policy())
     assert "static void ttd3_policy_forward(const float *obs, float *action)" in header
     readme = open(README).read()
     assert "ttd3_policy_forward(const float *obs, float *action)" in readme
@@ -105,7 +106,7 @@ def test_the_readme_and_policy_json_name_the_header_function():
     # the step of a policy that keeps state: its call order opens the header and is in policy.json
     cfg = sp.preset("robust").task
     api = pe.c_api(cfg)
-    header = pe.c_header(tracking_policy(cfg), "", None, api)
+    header = ch.c_header(tracking_policy(cfg), "", None, api)
     assert "\n".join(f" * {line}".rstrip() for line in api["call_order"]) in header
     call = "ttd3_step(&s, p, v, q, omega, ref, action);"
     assert call in header and call in open(USAGE).read() and "ttd3_reset(&state)" in readme
@@ -243,7 +244,7 @@ def test_ttd3_step_builds_the_envs_observation_and_keeps_its_state_step_after_st
     flown = vm.pin_vehicle(cfg, TWO[1]) if vehicles else cfg  # the vehicle the C shim names
     api = pe.c_api(flown)
     policy = tracking_policy(flown)
-    header = pe.c_header(policy, "test", vehicles, api)
+    header = ch.c_header(policy, "test", vehicles, api)
     assert api["state"] == ["last_action", "error_integral", "ref_int"]
     assert ("omega" in api["parts"]) == (name == "cf2") and "float ref_int[3];" in header
     state = fly_against_c(flown, api, header, lambda o: pe.forward(policy, o), tmp_path,
