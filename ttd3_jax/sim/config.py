@@ -137,10 +137,9 @@ class RewardConfig:
     err_scale: Annotated[float, Suppress] = 0.02  # m, ε of err_cost="log"
     rho1: float = 1.0
     rho2: float = 0.01
-    rho_rate: float = (
-        0.0  # weight of the action-rate cost ||a_k − a_k−1||² per physics step (needs obs_memory)
-    )
-    rho_yaw: float = 0.0  # weight of the heading cost ψ² (rad², the yaw of q) per physics step
+    # not in the paper (0: off); set in Python (the cf2 preset's recipes: experiments/transfer_recipes.py)
+    rho_rate: Annotated[float, Suppress] = 0.0  # ||a_k − a_k−1||² per physics step (needs obs_memory)
+    rho_yaw: Annotated[float, Suppress] = 0.0  # heading cost ψ² (rad², the yaw of q) per physics step
     effort_weights: Annotated[tuple[float, float, float, float], Suppress] = (1.0, 1.0, 1.0, 1.0)  # diag Ω
     effort_hover_relative: Annotated[bool, Suppress] = False  # penalise (a - a_hover) instead of a
     terminate: Annotated[bool, Suppress] = True
@@ -249,8 +248,14 @@ class RandomizationConfig:
         1.0,
         1.0,
     )  # factor on the rate lag: quad.tau_rate, or the rotors' (firmware)
-    rate_gains: tuple[float, float] = (1.0, 1.0)  # factor on the firmware rate PID's kp, ki, kd (one draw)
-    drag: tuple[float, float] = (1.0, 1.0)  # factor on the firmware model's air drag (quad.loop.drag)
+    rate_gains: Annotated[tuple[float, float], Suppress] = (
+        1.0,
+        1.0,
+    )  # factor on the firmware PID's kp, ki, kd
+    drag: Annotated[tuple[float, float], Suppress] = (
+        1.0,
+        1.0,
+    )  # factor on the firmware model's quad.loop.drag
     rate_limit: Annotated[tuple[float, float], Suppress] = (
         1.0,
         1.0,
