@@ -5,18 +5,20 @@ firmware's rate loop (``experiments/transfer_crazyflow.py``, in the crazyflow ve
 Per variant and seed: Σ‖e‖ in our simulator on Spiral-RT and LOS-RT (nominal), and on
 crazyflow the crashes, the largest ratio to our simulator and how many tracks beat crazyflow's
 Mellinger controller, over Spiral-RT, LOS-RT seeds 0-4 and the 0.5 m circle (issue 50's
-criteria).  Variants (``VARIANTS``): the preset; with a heading cost, an action-rate cost, or both;
-without memory (no last action, error integral or integral action: no identification in
-context); without the inner loop in training (``robust``, instant rates).
+criteria).  Variants (``VARIANTS``): the preset; without its heading cost; with an
+action-rate cost, on top of it or instead; without memory (no last action, error integral or
+integral action: no identification in context); without the inner loop in training
+(``robust``, instant rates).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
     python experiments/transfer_recipes.py --out DIR --variants cf2 action_rate     # some
     python experiments/transfer_recipes.py --out DIR --quick                        # tiny budget, 1 track
 
-Each variant's run and flights stay under ``OUT/<variant>`` (``flags.json`` records its flags;
-other flags are refused): a run found there is resumed if it did not finish, and a seed whose
-``transfer.json`` exists is read back, so a killed sweep continues where it stopped (delete a
-folder to redo it).  ``OUT/table.md`` and ``OUT/recipes.json`` collect the variants.
+Each variant's run and flights stay under ``OUT/<variant>`` (``flags.json`` records its preset,
+task changes and budget; a folder made otherwise is refused): a run found there is resumed if
+it did not finish, and a seed whose ``transfer.json`` exists is read back, so a killed sweep
+continues where it stopped (delete a folder to redo it).  ``OUT/table.md`` and
+``OUT/recipes.json`` collect the variants.
 """
 
 from __future__ import annotations
@@ -31,17 +33,16 @@ import sys
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 TRACKS = ("spiral_rt", *(f"los_rt_seed{s:02d}" for s in range(5)), "circle_r0.5")
-NO_MEMORY = ["--task.observation.no-obs-memory", "--task.observation.ref-integral-gain", "0"]
-YAW, RATE = ["--task.reward.rho-yaw", "0.1"], ["--task.reward.rho-rate", "1.0"]
+# variant -> (description, preset, EnvConfig changes by field name)
 VARIANTS = {
-    "cf2": ("the cf2 preset", ["--preset", "cf2"]),
-    "yaw": ("+ heading cost 0.1 ψ²", ["--preset", "cf2", *YAW]),
-    "action_rate": ("+ action-rate cost 1.0 ||Δa||²", ["--preset", "cf2", *RATE]),
-    "yaw_action_rate": ("+ both", ["--preset", "cf2", *YAW, *RATE]),
-    "no_memory": ("- memory and integral action", ["--preset", "cf2", *NO_MEMORY]),
-    "instant": ("trained with instant rates (robust)", ["--preset", "robust"]),
+    "cf2": ("the cf2 preset (heading cost 0.1 ψ²)", "cf2", {}),
+    "no_heading": ("without the heading cost", "cf2", {"rho_yaw": 0.0}),
+    "action_rate": ("+ action-rate cost 1.0 ||Δa||²", "cf2", {"rho_rate": 1.0}),
+    "rate_not_heading": ("action-rate cost, no heading cost", "cf2", {"rho_yaw": 0.0, "rho_rate": 1.0}),
+    "no_memory": ("- memory and integral action", "cf2", {"obs_memory": False, "ref_integral_gain": 0.0}),
+    "instant": ("trained with instant rates (robust)", "robust", {}),
 }
-PAPER = {"spiral_rt": 25.99, "los_rt_seed00": 398.74}
+QUICK = dict(total_transitions=30_000, epochs=2)  # --quick's budget
 
 
 def sh(cmd: list[str], log: str) -> None:
@@ -53,20 +54,35 @@ def sh(cmd: list[str], log: str) -> None:
             raise SystemExit(f"error: {' '.join(cmd[:4])} ... failed; see {log}")
 
 
+def made_with(name: str, quick: bool) -> dict:
+    """What variant ``name`` trains: its preset, task changes and budget (``flags.json``)."""
+    _, preset, changes = VARIANTS[name]
+    return {"preset": preset, "task": changes, "budget": QUICK if quick else {}}
+
+
+def train(made: dict, out: str) -> None:
+    """Train the variant ``made`` into a new run directory under ``out``."""
+    from ttd3_jax.run import loop
+    from ttd3_jax.run import spec as sp
+
+    spec = sp.preset(made["preset"], **made["budget"])
+    loop.run(sp.replace(spec, task=spec.task.replace(**made["task"])), out)
+
+
 def run_variant(name: str, out: str, cf_python: str, quick: bool) -> dict:
     """Train variant ``name`` (or resume its run), export and fly each seed (a seed whose
     ``transfer.json`` exists is read back); its summary (also in summary.json)."""
     folder = os.path.join(out, name)
-    flags = VARIANTS[name][1] + (["--total-transitions", "30000", "--epochs", "2"] if quick else [])
+    made = made_with(name, quick)
     os.makedirs(folder, exist_ok=True)
-    made = os.path.join(folder, "flags.json")
-    if os.path.isfile(made) and json.load(open(made)) != flags:
-        raise SystemExit(f"error: {folder} was made with other flags ({json.load(open(made))}); delete it")
-    json.dump(flags, open(made, "w"))
+    record = os.path.join(folder, "flags.json")
+    if os.path.isfile(record) and json.load(open(record)) != made:
+        raise SystemExit(f"error: {folder} was made otherwise ({json.load(open(record))}); delete it")
+    json.dump(made, open(record, "w"))
     log = os.path.join(folder, "log.txt")
     runs = glob.glob(os.path.join(folder, "runs", "*"))
     if not runs:
-        sh([sys.executable, "-m", "ttd3_jax.train", *flags, "--out", os.path.join(folder, "runs")], log)
+        train(made, os.path.join(folder, "runs"))
     elif json.load(open(os.path.join(runs[0], "state.json"))).get("state") != "finished":
         sh([sys.executable, "-m", "ttd3_jax.train", "--resume", runs[0]], log)
     (run_dir,) = glob.glob(os.path.join(folder, "runs", "*"))
@@ -92,13 +108,7 @@ def run_variant(name: str, out: str, cf_python: str, quick: bool) -> dict:
                 log,
             )
         seeds.append(seed_summary(json.load(open(flight))["tracks"]))
-    summary = {
-        "variant": name,
-        "description": VARIANTS[name][0],
-        "flags": flags,
-        "run_dir": run_dir,
-        "seeds": seeds,
-    }
+    summary = dict(variant=name, description=VARIANTS[name][0], made_with=made, run_dir=run_dir, seeds=seeds)
     json.dump(summary, open(os.path.join(folder, "summary.json"), "w"), indent=2)
     return summary
 
