@@ -19,7 +19,7 @@ from ttd3_jax.control.evaluator import CONTROLLERS, make_controller
 from ttd3_jax.control.nmpc import NMPC, NMPCConfig, nmpc_controller, tilt_quaternion
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import make_config
-from ttd3_jax.sim.dynamics import QuadState, body_z
+from ttd3_jax.sim.dynamics import QuadParams, QuadState, body_z
 from ttd3_jax.sim.env import TrackingEnv, action_to_control
 
 # 5 nodes 0.1 s apart: a 0.5 s horizon (the default is 20 × 0.05 s)
@@ -290,3 +290,16 @@ def test_tune_nmpc_on_the_wide_validation_tracks(tmp_path, capsys):
     with pytest.raises(SystemExit):
         tune.main(["--wide", "--num-tracks", "19"])
     assert "--num-tracks must be in [1, 18], got 19" in capsys.readouterr().err
+
+
+def test_the_nmpc_models_a_firmware_vehicle_as_a_rate_lag_of_its_rotors():
+    from ttd3_jax.control.nmpc import design_model, rigid_body
+    from ttd3_jax.sim.dynamics import model_state
+    from ttd3_jax.sim.vehicles import CF2
+
+    m = design_model(CF2)
+    assert (m.rate_model, m.loop, m.tau_rate) == ("first_order", None, CF2.loop.tau_up)
+    assert m.mass == CF2.mass and m.inertia == CF2.inertia
+    assert design_model(QuadParams()) == QuadParams()
+    x = rigid_body(model_state(CF2, QuadState.hover((1.0, 2.0, 3.0))))
+    assert type(x) is QuadState and tuple(np.asarray(x.p)) == (1.0, 2.0, 3.0)

@@ -121,6 +121,23 @@ class NMPCCarry:
     cost: jax.Array  # cost J of the plan at its solve (diagnostic)
 
 
+def design_model(quad: QuadParams) -> QuadParams:
+    """The vehicle as the NMPC models it: the vehicle itself, except that a ``firmware`` vehicle's
+    inner loop (a 1 kHz PID through rotor lags, too stiff for the NMPC's 50 ms node steps) is
+    modelled as body rates following the command with a first-order lag of the rotors' spin-up
+    time constant, the slowest part of the chain (``cf2``: 0.136 s); thrust acts at once.  With
+    0.03-0.08 s (the rate step's own rise) the NMPC crashes on Spiral-RT."""
+    if quad.rate_model != "firmware":
+        return quad
+    return quad.replace(rate_model="first_order", loop=None, tau_rate=quad.loop.tau_up)
+
+
+def rigid_body(x: QuadState) -> QuadState:
+    """``x``'s position, velocity, attitude and body rates (a ``firmware`` state without its rotors
+    and PID, which the NMPC's model does not carry)."""
+    return QuadState(p=x.p, v=x.v, q=x.q, w=x.w)
+
+
 def tilt_quaternion(z: jax.Array) -> jax.Array:
     """Minimal rotation (scalar first, q_z = 0) taking world z onto the unit vector ``z`` (..., 3)."""
     q = jnp.stack([1.0 + z[..., 2], -z[..., 1], z[..., 0], jnp.zeros_like(z[..., 0])], -1)
@@ -136,7 +153,7 @@ class NMPC:
     def __init__(self, env_config, cfg: NMPCConfig | None = None):
         self.env_config = env_config
         self.cfg = cfg = cfg or NMPCConfig()
-        self.params: QuadParams = env_config.vehicle.quad
+        self.params: QuadParams = design_model(env_config.vehicle.quad)
         self.dt = env_config.dt
         # physics step offsets of the nodes 0..N (reference sampling)
         self.node_steps = tuple(int(round(i * cfg.dt_node / self.dt)) for i in range(cfg.horizon + 1))
@@ -351,7 +368,7 @@ def nmpc_controller(env_config, cfg: NMPCConfig | None = None):
             ref = mpc.references(ps.track, ps.k)
             warm = mpc.shift(c.plan, c.age.astype(c.plan.dtype) * control_dt)
             iters = jnp.where(c.solves == 0, cfg.sqp_iters_first, cfg.sqp_iters)
-            U, J = mpc.solve(ps.quad, ref, warm, iters)
+            U, J = mpc.solve(rigid_body(ps.quad), ref, warm, iters)
             return NMPCCarry(plan=U, age=jnp.zeros_like(c.age), solves=c.solves + 1, cost=J)
 
         due = (carry.solves == 0) | (carry.age >= cfg.solve_every)
