@@ -434,7 +434,10 @@ class TrackingEnv(Env):
             renormalize=c.vehicle.renormalize,
         )
         k = k + 1
-        step_r = -effort
+        effort, change = effort
+        step_r = -c.reward.rho2 * effort
+        if change is not None:
+            step_r = step_r - c.reward.rho_rate * change
         if p_ref is None:
             p_ref = tr.position(track, k, c.dt)
         e = jnp.linalg.norm(p_ref - quad.p)
@@ -447,16 +450,15 @@ class TrackingEnv(Env):
         crashed = crashed | ~finite | (e > c.reward.e_max)
         return (quad, k, wind, key, reward, err_sum, crashed), p_ref
 
-    def _effort(self, a: jax.Array, ps: TrackingState) -> jax.Array:
-        """The action's cost per physics step: rho2 aᵀΩa, plus rho_rate ||a − a_prev||² (the
-        action the last control step commanded, ``obs_memory``'s ``last_action``)."""
+    def _effort(self, a: jax.Array, ps: TrackingState) -> tuple[jax.Array, jax.Array | None]:
+        """``(aᵀΩa, ||a − a_prev||²)`` of the action (the second: with ``rho_rate`` > 0, against
+        the action the last control step commanded, ``obs_memory``'s ``last_action``; else None)."""
         c = self.config
         change = a - ps.last_action if c.reward.rho_rate > 0 else None
         if c.reward.effort_hover_relative:
             a = a - hover_action(c).astype(a.dtype)
         w = jnp.asarray(self._effort_w, a.dtype)
-        cost = c.reward.rho2 * jnp.sum(w * a * a)
-        return cost if change is None else cost + c.reward.rho_rate * jnp.sum(change * change)
+        return jnp.sum(w * a * a), None if change is None else jnp.sum(change * change)
 
     def _initial_state(self, rng: jax.Array, p0: jax.Array) -> QuadState:
         c = self.config
