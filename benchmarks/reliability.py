@@ -1,12 +1,14 @@
-"""Fault scenarios of issue 34, re-runnable: corrupt byte ranges of the newest checkpoint
-and of a ``best/`` file, a second writer, a reader beside an unfinished save, and with real
-``python -m ttd3_jax.train`` processes (benchmarks/reliability_processes.py): SIGKILL at
-chosen moments then ``--resume`` (compared with an uninterrupted run), a second trainer
-racing for a live run, and a full disk (a small tmpfs; needs root, else skipped with a
-note).  Prints how each ended; docs/reliability.md holds a measured output.
+"""Fault scenarios of issues 34 and 49, re-runnable: corrupt byte ranges of the newest
+checkpoint and of a ``best/`` file, a second writer, a reader beside an unfinished save, and
+with real ``python -m ttd3_jax.train`` processes (benchmarks/reliability_processes.py):
+SIGKILL at chosen moments then ``--resume``, SIGINT / SIGTERM / SIGINT twice at chosen moments
+then ``--resume OUT`` (each compared with an uninterrupted run), ``evaluate`` and ``export``
+aimed at a stopped run's own files, a second trainer racing for a live run, and a full disk
+(a small tmpfs; needs root, else skipped with a note).  Prints how each ended and exits 1
+naming the cases that did not end as promised; docs/reliability.md holds measured outputs.
 
-    python benchmarks/reliability.py            # 40 corruptions, 5 kill moments, full disk
-    python benchmarks/reliability.py --quick    # 8 corruptions, 1 kill moment (CI)
+    python benchmarks/reliability.py            # 40 corruptions, 5 kill and 7 stop moments, 10 readers
+    python benchmarks/reliability.py --quick    # 8 corruptions, 1 kill and 1 stop moment, 1 reader
 """
 
 from __future__ import annotations
@@ -14,12 +16,18 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import sys
 import tempfile
 import time
 
 import jax
 import numpy as np
-from reliability_processes import full_disk, sigkill_then_resume  # noqa: E402  (beside this script)
+from reliability_processes import (  # beside this script
+    full_disk,
+    reference,
+    sigint_then_resume,
+    sigkill_then_resume,
+)
 
 from ttd3_jax.run import checkpoint as ckpt
 from ttd3_jax.run import status
@@ -120,18 +128,37 @@ def main() -> None:
                 print(full_disk(os.path.join(tmp, str(i)), os.path.join(tmp, "xla")), flush=True)
         return
     n, rng = (8 if args.quick else 40), np.random.default_rng(args.seed)
+    failed = []
+
+    def show(label: str, ok: bool, text) -> None:
+        print(f"{label}: {text}", flush=True)
+        if not ok:
+            failed.append(label)
+
     print(f"corrupting checkpoint 2 of 2 ({n} trials):")
-    print("newest checkpoint:", corrupt_newest(n, rng))
-    print("best/ file (64 random bytes):", corrupt_best(n, rng))
-    print(two_writers_and_a_reader())
+    newest = corrupt_newest(n, rng)
+    show("newest checkpoint", newest["loaded WRONG contents"] == 0, newest)
+    best = corrupt_best(n, rng)
+    show("best/ file (64 random bytes)", best["loaded WRONG contents"] == 0, best)
+    writers = two_writers_and_a_reader()
+    show("writers", writers == {"second writer": "refused", "trainer's unfinished save after a read": "kept"},
+         writers)  # fmt: skip
     t = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         cache = os.path.join(tmp, "xla")  # the runs share their compiled programs
-        for name, outcome in sigkill_then_resume(tmp, cache, args.quick).items():
-            print(f"SIGKILL {name}: {outcome}" if name != "second trainer" else f"{name}: {outcome}")
+        want, race = reference(tmp, cache)
+        for name, outcome in sigkill_then_resume(tmp, cache, args.quick, want).items():
+            show(f"SIGKILL {name}", "identical" in outcome, outcome)
+        for label, (ok, outcome) in sigint_then_resume(tmp, cache, args.quick, want).items():
+            show(label, ok, outcome)
+        show("second trainer", race.startswith("exit 2: ") and "one writer per run" in race, race)
         if not args.quick:
-            print(full_disk(tmp, cache))
+            disk = full_disk(tmp, cache)["full disk"]
+            show("full disk", disk.startswith("skipped") or (disk.startswith("exit 1;") and
+                 "Traceback lines: 0;" in disk and disk.endswith("--resume exit 0")), disk)  # fmt: skip
     print(f"(train processes: {time.perf_counter() - t:.0f} s)")
+    print(f"NOT as promised: {failed}" if failed else "every case ended as promised")
+    sys.exit(1 if failed else 0)
 
 
 if __name__ == "__main__":

@@ -183,6 +183,7 @@ def test_a_config_of_another_format_gets_one_line_naming_it(tmp_path, capsys):
     [
         (evaluate.main, ["--json", "{run}/config.json"], "is config.json of the run"),
         (evaluate.main, ["--json", "{run}/metrics.csv"], "is metrics.csv of the run"),
+        (evaluate.main, ["--json", "{run}/state.json"], "is state.json of the run"),
         (evaluate.main, ["--json", "{run}/checkpoints/x.json"], "is inside checkpoints/ of the run"),
         (evaluate.main, ["--plots", "{run}/best"], "is inside best/ of the run"),
         (export.main, ["--out", "{run}/checkpoints/4", "--no-onnx"], "is inside checkpoints/ of the run"),
@@ -197,8 +198,8 @@ def test_readers_never_write_into_a_runs_own_files(tmp_path, capsys, main, args,
     argv = [run_dir, *(a.format(run=run_dir) for a in args)]
     assert message in refused(main, argv + (["--no-timing"] if main is evaluate.main else []), capsys)
     assert open(os.path.join(run_dir, "config.json")).read() == before
-    assert not os.path.exists(os.path.join(run_dir, "metrics.csv"))
-    assert not os.path.exists(os.path.join(run_dir, "best"))
+    for name in ("metrics.csv", "state.json", "best"):
+        assert not os.path.exists(os.path.join(run_dir, name)), name
 
 
 def test_robustness_seeds_that_cannot_fit_are_refused_before_anything_compiles(capsys):
