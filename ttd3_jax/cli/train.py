@@ -211,10 +211,14 @@ def failure_message(e: Exception) -> str | None:
 
 
 def exit_with(code: int) -> None:
-    """End the process with ``main``'s status."""
-    if code == 1:  # a full disk or no memory: orbax's save threads may still be failing, and
-        sys.stdout.flush()  # their shutdown would print after the one line; the run's state is
-        sys.stderr.flush()  # already written (its lock released), so end here, without them
+    """End the process with ``main``'s status.  A full disk or no memory (1), or a stop by a
+    signal (130): orbax's save threads may still be failing or shutting down, and their
+    shutdown (an asyncio loop's finalizer on a closed descriptor, after a second Ctrl-C) would
+    print after the one line; the run's state is already written and its lock released, so
+    end here, without them."""
+    if code in (1, 130):
+        sys.stdout.flush()
+        sys.stderr.flush()
         os._exit(code)
     raise SystemExit(code)
 
