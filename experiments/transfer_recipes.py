@@ -5,10 +5,10 @@ firmware's rate loop (``experiments/transfer_crazyflow.py``, in the crazyflow ve
 Per variant and seed: Σ‖e‖ in our simulator on Spiral-RT and LOS-RT (nominal), and on
 crazyflow the crashes, the largest ratio to our simulator and how many tracks beat crazyflow's
 Mellinger controller, over Spiral-RT, LOS-RT seeds 0-4 and the 0.5 m circle (issue 50's
-criteria).  Variants (``VARIANTS``): the preset; without its heading cost; with an
-action-rate cost, on top of it or instead; without memory (no last action, error integral or
-integral action: no identification in context); without the inner loop in training
-(``robust``, instant rates).
+criteria).  Variants (``VARIANTS``): the preset (a heading cost and an action-rate cost);
+either cost alone; neither; neither and no memory (no last action, error integral or integral
+action: no identification in context); without the inner loop in training (``robust``,
+instant rates).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
     python experiments/transfer_recipes.py --out DIR --variants cf2 action_rate     # some
@@ -35,11 +35,15 @@ ROOT = os.path.dirname(HERE)
 TRACKS = ("spiral_rt", *(f"los_rt_seed{s:02d}" for s in range(5)), "circle_r0.5")
 # variant -> (description, preset, EnvConfig changes by field name)
 VARIANTS = {
-    "cf2": ("the cf2 preset (heading cost 0.1 ψ²)", "cf2", {}),
-    "no_heading": ("without the heading cost", "cf2", {"rho_yaw": 0.0}),
-    "action_rate": ("+ action-rate cost 1.0 ||Δa||²", "cf2", {"rho_rate": 1.0}),
-    "rate_not_heading": ("action-rate cost, no heading cost", "cf2", {"rho_yaw": 0.0, "rho_rate": 1.0}),
-    "no_memory": ("- memory and integral action", "cf2", {"obs_memory": False, "ref_integral_gain": 0.0}),
+    "cf2": ("the cf2 preset (heading 0.1 ψ², action rate 1.0 ||Δa||²)", "cf2", {}),
+    "heading_only": ("heading cost only", "cf2", {"rho_rate": 0.0}),
+    "rate_only": ("action-rate cost only", "cf2", {"rho_yaw": 0.0}),
+    "neither": ("neither cost", "cf2", {"rho_yaw": 0.0, "rho_rate": 0.0}),
+    "no_memory": (
+        "neither cost, no memory or integral action",
+        "cf2",
+        {"rho_yaw": 0.0, "rho_rate": 0.0, "obs_memory": False, "ref_integral_gain": 0.0},
+    ),
     "instant": ("trained with instant rates (robust)", "robust", {}),
 }
 QUICK = dict(total_transitions=30_000, epochs=2)  # --quick's budget
