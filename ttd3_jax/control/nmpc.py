@@ -125,8 +125,7 @@ def design_model(quad: QuadParams) -> QuadParams:
     """The vehicle as the NMPC models it: the vehicle itself, except that a ``firmware`` vehicle's
     inner loop (a 1 kHz PID through rotor lags, too stiff for the NMPC's 50 ms node steps) is
     modelled as body rates following the command with a first-order lag of the rotors' spin-up
-    time constant, the slowest part of the chain (``cf2``: 0.136 s); thrust acts at once.  With
-    0.03-0.08 s (the rate step's own rise) the NMPC crashes on Spiral-RT."""
+    time constant, the slowest part of the chain (``cf2``: 0.136 s); thrust acts at once."""
     if quad.rate_model != "firmware":
         return quad
     return quad.replace(rate_model="first_order", loop=None, tau_rate=quad.loop.tau_up)
