@@ -308,14 +308,14 @@ class TrackingEnv(Env):
         wind = jnp.zeros(3, f)
         if c.disturbances.wind_sigma > 0:
             wind = c.disturbances.wind_sigma * jax.random.normal(k_wind, (3,), f)
-        flown = c.vehicle.quad if vehicle is None else vehicle
-        fields = dict(
+        # the plant, drawn around ``vehicle`` (a key folded off rng's other draws)
+        plant = rz.draw(c, rng, vehicle, f) if self._randomized else None
+        flown = plant.quad if plant is not None else (c.vehicle.quad if vehicle is None else vehicle)
+        fields = dict(  # (firmware: the rotors hold the flown vehicle's weight)
             quad=model_state(flown, quad), k=jnp.zeros((), jnp.int32), track=track, wind=wind, key=k_next
         )
         fields["ref_next"] = jnp.zeros(3, f)
-        if self._randomized:  # the plant, drawn around ``vehicle`` (a key folded off rng's other draws)
-            plant = rz.draw(c, rng, vehicle, f)
-            fields["quad"] = model_state(plant.quad, quad)  # (firmware: rotors holding this plant's weight)
+        if self._randomized:
             hover = hover_action(c, rz.nominal_vehicle(plant)).astype(f)  # the known vehicle's map
             pending = jnp.broadcast_to(hover, (rz.pending_size(c), 4))
             ps = RandomizedTrackingState(**fields, plant=plant, pending=pending, last_action=jnp.zeros(4, f),
