@@ -3,6 +3,7 @@ jax.device_put_replicated), and the env is in Brax's registry."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -17,6 +18,7 @@ from brax.training.agents.ppo import train as ppo
 from brax.training.agents.sac import train as sac
 
 from ttd3_jax.interop import brax_compat
+from ttd3_jax.sim import env_api
 from ttd3_jax.sim.config import make_config
 from ttd3_jax.sim.env import TrackingEnv
 
@@ -116,6 +118,16 @@ def test_device_put_replicated_shards_one_copy_per_device():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
     p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert p.returncode == 0 and "OK" in p.stdout, p.stdout + p.stderr
+
+
+def test_the_envs_api_is_braxs_and_brax_compat_makes_it_a_brax_env():
+    """sim.env_api (Brax's interface, imported without Brax) has the fields and abstract methods of
+    Brax's, and importing brax_compat makes the tracking env a ``brax.envs.Env``, which Brax's SAC
+    and ARS check for before they wrap it."""
+    fields = lambda cls: [f.name for f in dataclasses.fields(cls)]
+    assert fields(env_api.State) == fields(brax_envs.State)
+    assert env_api.Env.__abstractmethods__ == brax_envs.Env.__abstractmethods__
+    assert isinstance(TrackingEnv(CFG), brax_envs.Env)
 
 
 def test_the_env_is_registered_with_brax():

@@ -16,23 +16,25 @@ takes a preset and ``EnvConfig`` fields), so ``brax.envs.get_environment("ttd3_q
 preset="practical")`` and ``brax.envs.create("ttd3_quadrotor", episode_length=300,
 preset="practical")`` work. Pass ``create`` the env's own ``episode_length`` (its default,
 1000, would cut paper episodes of 3000 steps short).
+
+The tracking env is built on :mod:`ttd3_jax.sim.env_api` (Brax's ``Env`` and ``State``
+without Brax, which the package loads only for a Brax task); importing this module also
+registers that ``Env`` as a subclass of ``brax.envs.Env``, which Brax's SAC and ARS check for.
 """
 
 from __future__ import annotations
-
-import contextlib
-import io
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-with contextlib.redirect_stdout(io.StringIO()):  # mujoco.mjx's "Failed to import warp" (see sim/env.py)
-    from brax import envs as brax_envs
-
+from ttd3_jax.run.tasks import load_brax_envs
+from ttd3_jax.sim import env_api
 from ttd3_jax.sim.config import EnvConfig, make_config
 from ttd3_jax.sim.env import TrackingEnv
+
+brax_envs = load_brax_envs()
 
 ENV_NAME = "ttd3_quadrotor"
 _AXIS = "_replica"
@@ -70,7 +72,9 @@ def make_env(preset: str = "paper", config: EnvConfig | None = None, **fields) -
 
 
 def register(name: str = ENV_NAME) -> None:
-    """Register :func:`make_env` with Brax's env registry under ``name`` (idempotent)."""
+    """Register :func:`make_env` with Brax's env registry under ``name``, and the package's
+    :class:`~ttd3_jax.sim.env_api.Env` as a ``brax.envs.Env`` (idempotent)."""
+    brax_envs.Env.register(env_api.Env)
     brax_envs.register_environment(name, make_env)
 
 

@@ -8,6 +8,10 @@ so damage anywhere in its files, metadata included, is reported.  A manager made
 (the trainer's, saving with ``wait=False``) copies the state to host memory and writes it in a
 background thread while training goes on; the next save, :func:`finish` and
 :func:`latest_epoch` wait for it.
+
+orbax is imported inside the functions that use it, not with this module: its import (with
+tensorstore) takes a few tenths of a second that importing the trainer, the CLI's argument
+checks and a run's memory check need not wait for.
 """
 
 from __future__ import annotations
@@ -21,12 +25,15 @@ import os
 import threading
 import time
 import weakref
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import orbax.checkpoint as ocp
 from flax import serialization
+
+if TYPE_CHECKING:
+    import orbax.checkpoint as ocp
 
 # Orbax refuses zero-size arrays (MJX states carry some, e.g. ``act`` for models without
 # actuator state): they are stored as a 1-element placeholder and rebuilt on restore.
@@ -51,6 +58,8 @@ def manager(run_dir: str, max_to_keep: int = 2, asynchronous: bool = False,
     background.  ``read_only`` (evaluation, export): nothing under ``checkpoints/`` is
     created, cleaned or deleted (a writer's manager removes unfinished ``*-tmp`` saves when
     it opens, which would delete the save a running trainer is writing)."""
+    import orbax.checkpoint as ocp
+
     options = ocp.CheckpointManagerOptions(
         max_to_keep=max_to_keep, enable_async_checkpointing=asynchronous,
         cleanup_tmp_directories=not read_only, read_only=read_only, create=not read_only,
@@ -75,9 +84,8 @@ def _run_dir(mngr: ocp.CheckpointManager) -> str:
 def _read_record(run_dir_or_mngr, name: str) -> dict | None:
     """``{epoch: entry}`` of record ``name`` in the run directory: empty when missing, ``None``
     when the file does not read as a record (damaged)."""
-    run_dir = (
-        _run_dir(run_dir_or_mngr) if isinstance(run_dir_or_mngr, ocp.CheckpointManager) else run_dir_or_mngr
-    )
+    is_dir = isinstance(run_dir_or_mngr, str | os.PathLike)
+    run_dir = run_dir_or_mngr if is_dir else _run_dir(run_dir_or_mngr)
     try:
         with open(os.path.join(run_dir, name)) as fh:
             return {int(k): v for k, v in json.load(fh).items()}
@@ -179,6 +187,8 @@ def save(mngr: ocp.CheckpointManager, epoch: int, state, wait: bool = True) -> N
     (:data:`FILES`); both are checked on restore.  ``wait``: return once it is on disk.
     Otherwise (with an ``asynchronous`` manager) return once ``state`` is copied to host
     memory: a private copy, so the caller may donate ``state`` right away."""
+    import orbax.checkpoint as ocp
+
     host = _pack(jax.tree.map(np.array, jax.device_get(state)))  # np.array copies
     _settle(mngr)  # the previous save (orbax waits for it here anyway) and its file hashes
     kept, run_dir = _saved_steps(mngr) | {epoch}, _run_dir(mngr)
@@ -245,6 +255,8 @@ def restore(mngr: ocp.CheckpointManager, epoch: int, like):
     host (numpy) arrays: the caller places them (``jax.device_put``, or onto a mesh).
     Raises :class:`CorruptCheckpoint` when its files differ from the hashes recorded when it
     was saved, or its contents from their recorded digest."""
+    import orbax.checkpoint as ocp
+
     check_files(mngr, epoch)
     abstract = jax.tree.map(lambda x: np.zeros((1,) if _empty(x) else x.shape, x.dtype), like)
     out = mngr.restore(epoch, args=ocp.args.StandardRestore(abstract))
@@ -262,6 +274,8 @@ def saved_track_rows(run_dir: str, epoch: int | None = None) -> int | None:
     """The rows of the training envs' track tables (:data:`TRACK_TABLE`, its third axis from
     the end) in checkpoint ``epoch`` of ``run_dir`` (default: the newest whose metadata reads),
     from orbax's metadata alone; ``None`` when none reads."""
+    import orbax.checkpoint as ocp
+
     options = ocp.CheckpointManagerOptions(read_only=True, create=False)
     folder = os.path.abspath(os.path.join(run_dir, "checkpoints"))
     with _orbax_quiet():

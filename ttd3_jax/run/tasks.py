@@ -4,6 +4,9 @@ own evaluation: the quadrotor tracking env and the Brax/MJX tasks.
 
 from __future__ import annotations
 
+import contextlib
+import io
+
 import jax
 import jax.numpy as jnp
 
@@ -33,6 +36,15 @@ def quadrotor(cfg: EnvConfig, track_rows: int | None = None) -> EnvSpec:
                    env.actor_observation_size)  # fmt: skip
 
 
+def load_brax_envs():
+    """``brax.envs``, imported when a Brax task (or Brax's trainers) first needs it, not with the
+    package: it imports all of Brax and MuJoCo MJX (about 0.5 s).  mujoco.mjx prints "Failed to
+    import warp" when the optional GPU package is absent; that stays out of our output."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        from brax import envs
+    return envs
+
+
 class _WithTerminated:
     """A Brax env whose ``info["terminated"]`` is 1.0 at a true terminal state (a fall), and
     0.0 at the time limit (``info["truncation"]``), as :class:`~ttd3_jax.sim.env.TrackingEnv`
@@ -54,12 +66,9 @@ class _WithTerminated:
 def brax(name: str, backend: str = "mjx", episode_length: int = 1000, eval_episodes: int = 10) -> EnvSpec:
     """Brax env ``name`` with a time limit of ``episode_length`` steps; evaluated by the mean
     undiscounted return of ``eval_episodes`` deterministic episodes (``eval_return``)."""
-    # brax's envs import here, not at the top: a quadrotor run never loads them (sim.env has
-    # already silenced mujoco.mjx's import message)
-    from brax import envs as brax_envs
-    from brax.envs.wrappers.training import EpisodeWrapper
-
-    env = EpisodeWrapper(brax_envs.get_environment(name, backend=backend), episode_length, action_repeat=1)
+    brax_envs = load_brax_envs()  # here, not at the top: a quadrotor run never loads Brax
+    env = brax_envs.get_environment(name, backend=backend)
+    env = brax_envs.training.EpisodeWrapper(env, episode_length, action_repeat=1)
     env = _WithTerminated(env)
 
     def evaluate(policy):

@@ -26,18 +26,11 @@ and is truncated (``info["truncation"] = 1``) after ``episode_steps`` physics st
 
 from __future__ import annotations
 
-import contextlib
-import io
 import math
 import os
 
 import jax
 import jax.numpy as jnp
-
-# mujoco.mjx (imported by brax) prints "Failed to import warp" when the optional
-# GPU package is absent; keep that out of our CLI output.
-with contextlib.redirect_stdout(io.StringIO()):
-    from brax.envs.base import Env, State
 
 from ttd3_jax.sim import custom_tracks as ct
 from ttd3_jax.sim import observation
@@ -56,6 +49,7 @@ from ttd3_jax.sim.dynamics import (
     rk4_step,
     yaw_of,
 )
+from ttd3_jax.sim.env_api import Env, State
 from ttd3_jax.sim.env_state import (
     DelayedTrackingState,
     IntegralMemoryState,
