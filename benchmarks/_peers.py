@@ -4,10 +4,11 @@ benchmarks (``peer_*.py``), running a peer in its own interpreter.
 A peer framework is often not installable next to this project (crazyflow excludes the
 jax this project pins), so each peer runs in a *worker*: the benchmark script itself,
 started with ``--worker`` by the Python of a venv that has the peer.  The parent sends one
-JSON line per command (``build`` a case, ``time`` it once, ``quit``) and reads one JSON line
-back; timings are taken inside the worker, around the call only.  The parent interleaves
-``time`` calls over all cases (its own, in-process, and the workers'), so machine noise
-hits every case alike, as in the other benchmarks.
+JSON line per command (``build`` a case, ``time`` it once, ``run`` it once for the JSON-able
+dict it returns, ``quit``) and reads one JSON line back; timings are taken inside the
+worker, around the call only.  The parent interleaves ``time`` calls over all cases (its
+own, in-process, and the workers'), so machine noise hits every case alike, as in the other
+benchmarks.
 
 Where a peer is looked for, in order: ``$TTD3_PEER_PYTHONS`` (interpreters separated by
 ``os.pathsep``), this interpreter, ``.venv-peers/bin/python``, ``.venv-crazyflow/bin/python``.
@@ -41,6 +42,10 @@ INSTALL = {
     "stable_baselines3": (
         "python -m venv .venv-peers && .venv-peers/bin/pip install -e '.[peers]'"
         "  (install a CPU-only torch 2.13 build first where pip would pull a CUDA one)"
+    ),
+    "rltools": (
+        "python -m venv .venv-peers && .venv-peers/bin/pip install -e '.[peers]'"
+        "  (rltools compiles C++ at run time: it needs g++ or clang++ and the Python headers)"
     ),
 }
 
@@ -96,6 +101,10 @@ class Local:
     def time(self, cid: str) -> float:
         return timed(self.fns[cid])
 
+    def run(self, cid: str) -> dict:
+        """One call of a case whose function returns a JSON-able dict (it times itself)."""
+        return self.fns[cid]()
+
     def forget(self, cid: str):
         self.fns.pop(cid, None)
 
@@ -146,6 +155,9 @@ class Worker:
 
     def time(self, cid: str) -> float:
         return self.call("time", cid=cid)["run_s"]
+
+    def run(self, cid: str) -> dict:
+        return self.call("run", cid=cid)
 
     def forget(self, cid: str):
         self.call("forget", cid=cid)
@@ -200,6 +212,8 @@ def serve(builders: dict[str, Callable]) -> None:
                 out = local.build(msg["cid"], msg["kind"], **msg["params"])
             elif op == "time":
                 out = {"run_s": local.time(msg["cid"])}
+            elif op == "run":
+                out = local.run(msg["cid"])
             elif op == "forget":
                 local.forget(msg["cid"])
                 out = {}
