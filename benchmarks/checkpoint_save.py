@@ -1,8 +1,9 @@
 """How long an epoch waits for its checkpoint: a synchronous save (written before the call
 returns) against the trainer's background save (``ttd3_jax.run.checkpoint.save(..., wait=False)``
 on an asynchronous manager: the state is copied to host memory, then written while the next
-epoch trains).  The state is the ``fast`` preset's whole train state (replay buffer
-included), saved alternately both ways into a temporary directory.
+epoch trains).  The state is the ``fast`` preset's whole train state with 2 critic updates per
+rollout (as ``robust`` and ``cf2`` train: their replay buffer of 450k transitions is most of
+it; ``fast`` itself keeps no buffer), saved alternately both ways into a temporary directory.
 
     python benchmarks/checkpoint_save.py            # 7 saves each way
     python benchmarks/checkpoint_save.py --quick    # CI smoke run: 2 each
@@ -41,7 +42,7 @@ def main(argv=None) -> dict:
     n = 2 if args.quick else args.saves
     if n < 1:
         ap.error(f"--saves must be >= 1, got {n}")
-    s = sp.preset("fast")
+    s = sp.preset("fast", updates_per_step=2)  # with critics, as robust and cf2: the buffer is most of it
     keys = seed_keys(s.seed, s.num_seeds)
     init_fn = runner_fns(sp.trainer_for(s), keys, s.hp)[0]
     ts = jax.block_until_ready(init_fn(keys, s.hp))

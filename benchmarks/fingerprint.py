@@ -20,7 +20,9 @@ not its train lines (measured on a 2-core AVX2 EPYC VM on 2026-12-05; the capped
 written before then were wrong there).  ``fingerprint_avx512.txt`` was written on an AVX-512
 EPYC; on a 2-core AVX-512 Intel Xeon VM every line matches but ``env_obs_noise``, which reads
 ``7fff225f8ea838fc`` there both at the file's own commit (468c8ed) and at f73a2b3
-(2026-12-05), so that one line differs by CPU vendor, not by code.
+(2026-12-05), so that one line differs by CPU vendor, not by code.  Both files were rewritten on
+2026-12-07 when :mod:`ttd3_jax.compile_flags` moved every line: ``fingerprint.txt`` holds only
+the env lines then (from an AVX-512 EPYC with the AVX2 cap); its train lines need an AVX2 VM.
 ``--compare FILE`` checks each line against FILE and exits 1 naming the ones that differ.
 
 Each line is ``name sha256-prefix``:

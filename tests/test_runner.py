@@ -241,15 +241,16 @@ def test_policy_selected_on_validation_tracks_is_saved_and_reloads(tmp_path):
 
 
 def test_fast_preset_model_actor_learns_on_a_small_budget(tmp_path):
-    """The default ``fast`` preset's first epoch (50 model-based actor updates, 170k
-    transitions, one seed; about 30 s on 2 CPU cores).  The untrained policy scores about
-    4e4 on both tracks; first epochs measured at this point of training gave Spiral-RT
-    22-152 and LOS-RT 237-396 (seeds 0-2), and the bars are about 2x above the worst."""
-    part = run(sp.preset("fast"), out=str(tmp_path), verbose=False, stop_after=1)
-    (row,) = rundir.read_metrics(part["run_dir"])
+    """The default ``fast`` preset's first two epochs (100 rollouts, the first 4 the random
+    warm-up, 160k transitions, one seed; about 20 s on 2 CPU cores).  The untrained policy
+    scores about 4e4 on both tracks; at this point of training ``experiments/fast_sweep.py``
+    measured Spiral-RT 16-44 and LOS-RT 238-269 (seeds 0-2), and the bars are about 2x above
+    the worst."""
+    part = run(sp.preset("fast"), out=str(tmp_path), verbose=False, stop_after=2)
+    row = rundir.read_metrics(part["run_dir"])[-1]
     sp_, los = float(row["spiral_tracking_error"]), float(row["los_tracking_error"])
     print(f"Spiral-RT {sp_:.1f}, LOS-RT {los:.1f}")
-    assert sp_ < 300 and los < 900, (sp_, los)
+    assert int(row["epoch"]) == 2 and sp_ < 100 and los < 550, (sp_, los)
 
 
 @pytest.mark.slow

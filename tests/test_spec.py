@@ -29,9 +29,10 @@ def _changed(a, b) -> set[str]:
 
 
 def test_the_presets_differ_where_their_docs_say():
-    """``fast_dpg`` is ``fast`` with the paper's actor update (and the budget and update
-    rate that update needs), ``fast_model_free`` is ``fast_dpg`` observing its memory and
-    privileged critic inputs; ``paper`` is the defaults; unknown names are refused."""
+    """``fast_dpg`` is ``fast`` with the paper's actor update (and the budget, update rate
+    and constant learning rate that update needs), ``fast_model_free`` is ``fast_dpg``
+    observing its memory and privileged critic inputs; ``paper`` is the defaults; unknown
+    names are refused."""
     fast, dpg, free = (sp.preset(n) for n in ("fast", "fast_dpg", "fast_model_free"))
     assert fast.train.model_horizon > 0 and dpg.train.model_horizon == 0
     assert _changed(fast.train, dpg.train) <= {
@@ -40,7 +41,7 @@ def test_the_presets_differ_where_their_docs_say():
         "epochs",
         "updates_per_step",
     }
-    assert _changed(fast.hp, dpg.hp) == {"lr_actor"} and fast.task == dpg.task
+    assert _changed(fast.hp, dpg.hp) == {"lr_actor", "lr_decay"} and fast.task == dpg.task
     assert (free.train, free.hp) == (dpg.train, dpg.hp)
     assert _changed(dpg.task, free.task) == {"obs_memory", "obs_privileged"}
     assert sp.preset("paper") == sp.RunSpec() and sp.RunSpec().task == make_config("paper")
@@ -52,12 +53,16 @@ def test_the_presets_differ_where_their_docs_say():
 def test_every_presets_budget_is_whole_epochs_within_its_total(name):
     """A preset's budget, computed from its own config: the warm-up, then ``epochs`` epochs
     of vector steps on every env, never past ``total_transitions`` and short of it by less
-    than one more vector step per epoch; the warm-up fills a first minibatch."""
+    than one more vector step per epoch; the warm-up fills a first minibatch (or, without
+    critics, its rollouts hold ``warmup_transitions``)."""
     c = sp.preset(name).train
     vector = c.env_steps_per_step * c.num_envs  # transitions of one vector step
     assert c.transitions_run == c.warmup_steps * c.num_envs + c.epochs * c.steps_per_epoch * vector
     assert c.total_transitions - (c.epochs + 1) * vector < c.transitions_run <= c.total_transitions
-    assert c.warmup_steps * c.num_envs >= c.warmup_transitions >= c.batch_size
+    if c.warmup_in_rollouts:
+        assert c.warmup_steps == 0 and c.warmup_rollouts * vector >= c.warmup_transitions > 0
+    else:
+        assert c.warmup_steps * c.num_envs >= c.warmup_transitions >= c.batch_size
 
 
 def test_a_run_collects_the_budget_computed_from_its_config(tmp_path, capsys, shown_messages):

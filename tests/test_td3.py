@@ -14,7 +14,7 @@ from tiny import tiny
 
 from ttd3_jax.run import spec as sp
 from ttd3_jax.td3 import buffer as rb
-from ttd3_jax.td3 import dpg, model_based, networks
+from ttd3_jax.td3 import core, dpg, model_based, networks
 from ttd3_jax.td3 import noise as nz
 from ttd3_jax.td3 import trainer as T
 from ttd3_jax.td3.config import Hyper, NoiseConfig, TrainConfig, validate_hyper
@@ -38,6 +38,7 @@ from ttd3_jax.td3.networks import init_params, make_networks, twin_q
         (dict(target_noise="shared"), "target_noise"),
         (dict(model_horizon=-1), "model_horizon"),
         (dict(model_horizon=50), "total_transitions"),
+        (dict(updates_per_step=0), r"updates_per_step must be .* \(0 needs model_horizon"),
         (dict(hidden=(32, 0)), "hidden"),
         (dict(normalize_obs="yes"), "normalize_obs"),
         (dict(num_envs=16.0), "num_envs must be an integer"),
@@ -392,6 +393,54 @@ def test_model_rollout_stores_its_transitions_in_env_order(model_trainer):
     same = np.all(np.isclose(nxt[:-1], obs[1:]), axis=-1)
     assert np.all(same | (done[:-1] > 0))
     assert np.isfinite(float(m["actor_loss"]))
+
+
+def test_without_critics_the_warmup_is_the_first_rollouts_and_sigma_follows_the_rollouts():
+    """G = 0 (the ``fast`` preset): no buffer, init collects nothing, the first
+    ``warmup_rollouts`` rollouts act at random and leave the actor and its Adam state alone,
+    the later ones move it; the critics and targets never move, and their metrics are nan.
+    σ after a rollout is T-TD3's formula on the rollout's rewards, with t the transitions
+    collected."""
+    s = tiny(
+        updates_per_step=0, model_horizon=3, epochs=1, total_transitions=16 * 3 * 6, warmup_transitions=100
+    )
+    c, t = s.train, sp.trainer_for(s)
+    assert c.warmup_in_rollouts and c.warmup_steps == 0 and c.warmup_rollouts == 3  # ceil(100 / 48)
+    ts0 = jax.jit(t.init)(T.seed_keys(0, 1)[0], s.hp)
+    assert ts0.buffer.capacity == 0 and int(ts0.n_tr) == 0
+    step = jax.jit(lambda ts: model_based.vector_step(t.setup, s.hp, ts))
+    states, ts = [ts0], ts0
+    for _ in range(c.warmup_rollouts + 1):
+        ts, (m, _) = step(ts)
+        states.append(ts)
+    for before, after in zip(states[:-2], states[1:-1], strict=True):  # the warm-up's rollouts
+        assert not changed(after.actor, before.actor) and not changed(after.actor_opt, before.actor_opt)
+    assert changed(states[-1].actor, states[-2].actor)  # the first that learns
+    assert int(ts.n_tr) == (c.warmup_rollouts + 1) * c.model_horizon * c.num_envs and int(ts.n_upd) == 0
+    assert not changed(ts.critic, ts0.critic) and not changed(ts.target_actor, ts0.target_actor)
+    assert np.isnan(float(m.critic_loss)) and np.isfinite(float(m.actor_loss))
+
+    update = jax.jit(lambda ts: model_based.model_actor_update(t.setup, ts, s.hp, jax.random.PRNGKey(1)))
+    ts1, _, _, rewards = update(ts)
+    hp, r = s.hp, np.asarray(rewards)
+    assert r.shape == (c.model_horizon * c.num_envs,)
+    delta = np.sum((r - r.min()) / (r.max() - r.min()))
+    t_ep = int(ts1.n_tr) / t.env.episode_length
+    want = hp.beta * hp.u_max * np.exp(-hp.lam * t_ep) + (1 - hp.beta) * hp.u_max * np.exp(-delta)
+    got = jax.jit(lambda ts: core.update_sigma(t.setup, ts, hp, rewards))(ts1).noise.sigma
+    assert float(got) == pytest.approx(want, rel=1e-5)
+
+
+def test_the_actor_learning_rate_falls_linearly_over_the_run():
+    """``hp.lr_decay``: the actor's lr is ``lr_actor`` at the start, ``lr_actor (1 - decay)``
+    at the run's last transition; 0 leaves it constant."""
+    s = tiny(model_horizon=3, epochs=1, total_transitions=16 * (8 + 3 * 6))
+    setup, n = sp.trainer_for(s).setup, s.train.transitions_run
+    ts = jax.jit(sp.trainer_for(s).init)(T.seed_keys(0, 1)[0], s.hp)
+    for decay, frac, want in ((0.0, 1.0, 1.0), (1.0, 0.0, 1.0), (1.0, 0.5, 0.5), (0.5, 1.0, 0.5)):
+        hp = s.hp.replace(lr_actor=0.01, lr_decay=decay)
+        lr = core.actor_lr(setup, ts.replace(n_tr=jnp.asarray(int(frac * n), jnp.int32)), hp)
+        assert float(lr) == pytest.approx(0.01 * want, rel=1e-6)
 
 
 def test_model_actor_loss_is_the_rollout_return_and_its_gradient_matches_finite_differences(model_trainer):

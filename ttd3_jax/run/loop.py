@@ -7,6 +7,7 @@ progress line is printed on stdout.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import json
 import logging
@@ -44,13 +45,14 @@ class Stages:
     construct_s: float | None = None  # the trainer and its programs' Python objects
     restore_s: float | None = None  # a resume's checkpoint
     init_lower_s: float | None = None  # trace (or load the stored program) and lower
-    init_compile_s: float | None = None
-    warmup_s: float | None = None  # the random warm-up's collection
-    first_checkpoint_s: float | None = None
     epoch_lower_s: float | None = None
-    epoch_compile_s: float | None = None
     eval_lower_s: float | None = None
+    compile_s: float | None = None  # the programs compiled at once (wall time)
+    init_compile_s: float | None = None  # each program's own compile, overlapping the others'
+    epoch_compile_s: float | None = None
     eval_compile_s: float | None = None
+    warmup_s: float | None = None  # the init program's run (with the random warm-up's collection)
+    first_checkpoint_s: float | None = None
     epochs: list = dataclasses.field(default_factory=list)  # per epoch: train_s, eval_s, host_s
 
     def as_dict(self) -> dict:
@@ -111,10 +113,12 @@ def progress_line(epoch: int, epochs: int, m: dict, ev: dict, sps: float) -> str
     return f"[{bar}] epoch {epoch:>3}/{epochs}  steps {steps:9.3g}  {sps:8.3g}/s  σ {sigma:.3g}  {tail}"
 
 
-def check_finite(m: dict, ts, epoch: int, run_dir: str, mngr) -> None:
+def check_finite(m: dict, ts, epoch: int, run_dir: str, mngr, critics: bool = True) -> None:
     """Stop a diverged run: name the losses and parameter groups that went non-finite, the
-    epoch and the last good checkpoint, and what to try."""
-    bad = [k for k in ("critic_loss", "q_mean", "actor_loss") if not np.all(np.isfinite(np.asarray(m[k])))]
+    epoch and the last good checkpoint, and what to try (``critics``: whether the critics
+    train, so that their losses exist)."""
+    losses = ("critic_loss", "q_mean", "actor_loss") if critics else ("actor_loss",)
+    bad = [k for k in losses if not np.all(np.isfinite(np.asarray(m[k])))]
     for group in ("critic", "actor", "target_critic", "target_actor"):
         if not all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(getattr(ts, group))):
             bad.append(f"{group} parameters")
@@ -164,6 +168,9 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", *, resume: str | None
         log(f"budget: {c.transitions_run:,} of total_transitions {c.total_transitions:,} per seed "
             f"({c.warmup_steps * c.num_envs:,} warm-up, then {c.epochs} epochs x {c.steps_per_epoch} vector "
             f"steps x {c.env_steps_per_step} env steps x {c.num_envs} envs)")  # fmt: skip
+    if c.warmup_rollouts:
+        log(f"warm-up: the first {c.warmup_rollouts} rollouts act at random ({c.warmup_transitions:,} "
+            "transitions asked) and leave the actor alone")  # fmt: skip
     stages, t = Stages(), time.perf_counter()
     trainer = sp.trainer_for(spec)
     rows = getattr(trainer.env.env, "num_segments", None)  # the tracking env's table size (users' tracks)
@@ -243,25 +250,22 @@ def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> 
             ts, start, csv_log = _resume(run_dir, init_fn=init_fn, keys=keys, hp=hp, place=place, log=log)
             mngr = ckpt.manager(run_dir, asynchronous=True)  # after _resume deleted what does not load
             stages.restore_s, t = _since(t)
+            shape = jax.eval_shape(lambda t: t, ts)
+            programs = {"epoch": (epoch_fn, (shape, hp))} if start < c.epochs else {}
+            exes, t = _compile({**programs, "eval": (eval_fn, (shape,))}, stages, t)
         else:
             if r.resuming:
                 log(f"{run_dir} has no checkpoint (it stopped before its first): starting it over")
             mngr = ckpt.manager(run_dir, asynchronous=True)
-            ts, start, csv_log, t = _fresh(r, mngr=mngr, init_fn=init_fn, keys=keys, hp=hp, t=t)
-        if start < c.epochs:  # a run whose last epoch is checkpointed only needs its final evaluation
-            epoch_c, stages.epoch_lower_s, stages.epoch_compile_s, t = _program(epoch_fn, (ts, hp), t)
-        else:
-            epoch_c, stages.epoch_lower_s, stages.epoch_compile_s = None, 0.0, 0.0
-        eval_c, stages.eval_lower_s, stages.eval_compile_s, t = _program(
-            eval_fn, (jax.eval_shape(lambda t: t, ts),), t
-        )
-        ep_s, ev_s = (
-            stages.epoch_lower_s + stages.epoch_compile_s,
-            stages.eval_lower_s + stages.eval_compile_s,
-        )
-        log(f"compiled epoch + eval in {ep_s + ev_s:.1f} s (epoch {ep_s:.1f} s, eval {ev_s:.1f} s); "
-            f"{spec.num_seeds} seed(s) x {c.num_envs} envs, {c.steps_per_epoch} vector steps x "
-            f"{c.updates_per_step} updates per epoch")  # fmt: skip
+            shape = init_fn.eval_shape(keys, hp)
+            programs = {"init": (init_fn, (keys, hp)), "epoch": (epoch_fn, (shape, hp))}
+            exes, t = _compile({**programs, "eval": (eval_fn, (shape,))}, stages, t)
+            ts, start, csv_log, t = _fresh(r, mngr=mngr, init_c=exes["init"], keys=keys, hp=hp, t=t)
+        epoch_c, eval_c = exes.get("epoch"), exes["eval"]  # (a checkpointed last epoch needs only eval)
+        lowered = sum(getattr(stages, f"{n}_lower_s") for n in exes)
+        log(f"compiled {' + '.join(exes)} in {lowered + stages.compile_s:.1f} s (trace {lowered:.1f} s, then "
+            f"compile {stages.compile_s:.1f} s, at once); {spec.num_seeds} seed(s) x {c.num_envs} envs, "
+            f"{c.steps_per_epoch} vector steps x {c.updates_per_step} updates per epoch")  # fmt: skip
         last = c.epochs if stop_after is None else min(c.epochs, start + stop_after)
         loop = EpochLoop(spec=spec, run_dir=run_dir, mngr=mngr, csv_log=csv_log, epoch_c=epoch_c,
                          eval_c=eval_c, live=live, verbose=r.verbose, every=checkpoint_every,
@@ -279,7 +283,7 @@ def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> 
             f"with python -m ttd3_jax.train --resume {run_dir}")  # fmt: skip
         return {"run_dir": run_dir, "stopped_at": last, "stopped_by": by}
     ev = ev if ev is not None else jax.device_get(eval_c(ts))
-    summary = _finish(run_dir, spec, ev, compile_s=ep_s + ev_s, run_s=run_s, stages=stages)
+    summary = _finish(run_dir, spec, ev, compile_s=lowered + stages.compile_s, run_s=run_s, stages=stages)
     status.mark(run_dir, "finished", epoch=last)
     extra = ", best/ (the policy selected on the validation tracks)" if spec.is_quadrotor else ""
     log(f"results in {run_dir}: metrics.csv, eval.json, learning_curve.png, checkpoints/{extra}")
@@ -290,19 +294,18 @@ def _has_checkpoint(run_dir: str) -> bool:
     return _newest_checkpoint(run_dir) is not None
 
 
-def _fresh(r: _Run, *, mngr, init_fn, keys, hp, t: float):
-    """Initialise, collect the warm-up and write checkpoint 0: ``(ts, 0, csv_log, t)``."""
+def _fresh(r: _Run, *, mngr, init_c, keys, hp, t: float):
+    """Initialise (with the warm-up, where it precedes the epochs) and write checkpoint 0:
+    ``(ts, 0, csv_log, t)``."""
     stages, c = r.stages, r.spec.train
-    init_c, stages.init_lower_s, stages.init_compile_s, t = _program(init_fn, (keys, hp), t)
-    ts = jax.block_until_ready(init_c(keys, hp))  # warm-up collection included
+    ts = jax.block_until_ready(init_c(keys, hp))
     stages.warmup_s, t = _since(t)
-    ckpt.save(mngr, 0, ts)  # on disk before compiling (a write alongside slows the compile)
+    ckpt.save(mngr, 0, ts, wait=False)  # written while the first epoch trains (the programs are compiled)
     stages.first_checkpoint_s, t = _since(t)
     csv_log = rundir.CsvLog(os.path.join(r.run_dir, "metrics.csv"))
     r.log(f"run dir {r.run_dir}")
-    init_s = stages.init_lower_s + stages.init_compile_s
-    r.log(f"init + warm-up ({c.warmup_steps * c.num_envs} transitions per seed): compile {init_s:.1f} s, "
-          f"run {stages.warmup_s:.1f} s, checkpoint {stages.first_checkpoint_s:.1f} s")  # fmt: skip
+    r.log(f"init + warm-up ({c.warmup_steps * c.num_envs:,} transitions per seed): run "
+          f"{stages.warmup_s:.1f} s, checkpoint {stages.first_checkpoint_s:.1f} s")  # fmt: skip
     return ts, 0, csv_log, t
 
 
@@ -322,14 +325,28 @@ def _stored(spec: sp.RunSpec, fns: tuple) -> tuple:
             StoredProgram(eval_fn, "eval", context, store, **kw), place)  # fmt: skip
 
 
-def _program(fn, args: tuple, t: float):
-    """``fn`` traced and compiled for ``args`` (the persistent compilation cache may answer the
-    compile): ``(program, lower seconds, compile seconds, the time now)``."""
-    lowered = fn.lower(*args)
-    t1 = time.perf_counter()
-    exe = lowered.compile()
-    now = time.perf_counter()
-    return exe, t1 - t, now - t1, now
+def _compile(programs: dict, stages: Stages, t: float):
+    """``programs`` (name: ``(fn, args)``) traced one after the other (tracing holds the GIL),
+    then compiled all at once, one thread each (XLA's compiles release it; the persistent
+    compilation cache may answer them): ``({name: executable}, the time now)``.  Sets each
+    program's ``<name>_lower_s`` and ``<name>_compile_s`` and the wall time, ``compile_s``."""
+    lowered = {}
+    for name, (fn, args) in programs.items():
+        lowered[name] = fn.lower(*args)
+        setattr(stages, f"{name}_lower_s", time.perf_counter() - t)
+        t = time.perf_counter()
+
+    def compile_one(name):
+        t0 = time.perf_counter()
+        exe = lowered[name].compile()
+        setattr(stages, f"{name}_compile_s", time.perf_counter() - t0)
+        return exe
+
+    with concurrent.futures.ThreadPoolExecutor(len(lowered)) as pool:
+        futures = {name: pool.submit(compile_one, name) for name in lowered}
+        exes = {name: f.result() for name, f in futures.items()}
+    stages.compile_s, now = _since(t)
+    return exes, now
 
 
 def _since(t: float) -> tuple[float, float]:
@@ -393,7 +410,7 @@ def _epochs(loop: EpochLoop, ts, start: int, last: int):
             ts, m = epoch_c(ts, spec.hp)
             m = jax.device_get(m)
             t_train = time.perf_counter() - te
-            check_finite(m, ts, epoch, run_dir, mngr)
+            check_finite(m, ts, epoch, run_dir, mngr, spec.train.trains_critics)
             ev = jax.device_get(eval_c(ts))
         finally:
             if live is not None:

@@ -27,7 +27,7 @@ PRESETS = ("fast", "robust", "cf2", "fast_dpg", "fast_model_free", "paper", "muj
 SEED_LIMIT = 2**32  # seeds are uint32 PRNG keys: seed + num_seeds - 1 must stay below this
 # config.json's "format": the layout of the run spec this version reads, and the only one.  A
 # file of another format was written by an older ttd3_jax, and is refused with one line.
-CONFIG_FORMAT = 11
+CONFIG_FORMAT = 12
 
 
 # The ``robust`` preset's task on top of ``fast``'s (EnvConfig fields by name): what each
@@ -147,21 +147,21 @@ def preset(name: str, **changes) -> RunSpec:
     ``fast``: the ``practical`` env (10 ms actions, 50 ms look-ahead, track-frame
     observation) with hover-centred thrust, running observation normalisation, 64-64
     networks, 64 envs, rewards scaled by 0.01, and (not in the paper) a model-based actor
-    update: 0.5 s rollouts (``model_horizon=50``) back-propagated through the simulator,
-    actor lr 1e-2, 1.6M transitions.  The twin critics are still trained by TD3 (2 updates
-    per rollout, which keep T-TD3's σ schedule running); the actor does not use them.
+    update: 0.5 s rollouts (``model_horizon=50``) through the simulator, actor lr 2e-2 falling
+    to 0, 960k transitions in 12 epochs, no critic: σ moves with the rollouts' rewards.
     ``fast_dpg``: ``fast`` with the paper's actor update (∂Q₁/∂a through the critic), 450k
     transitions, 16 updates per 64-env step; it plateaus (docs/results.md).
     ``fast_model_free``: ``fast_dpg`` with the observation's memory (last action, error
     integral) and the critics' privileged inputs (wind, 1 s of preview): the best model-free
     recipe of ``experiments/model_free.py``, still short of the paper (docs/results.md).
-    ``robust``: ``fast`` (the model-based actor) trained against what a real vehicle never
-    tells exactly (:data:`ROBUST_TASK`): each episode draws the mass, thrust gain, body-rate
-    lag, latency, observation noise level and position bias, and a mean wind, and flies a
-    track of the wide mixture (``sim.track_families``); the policy also observes its last
-    action, the leaky integral of the tracking error and the reference 0.1, 0.25, 0.5 and 1 s
-    ahead, and tracks a reference shifted by the integral of its error (integral action).
-    Three seeds side by side; each seed's policy is selected on the wide validation tracks.
+    ``robust``: ``fast``'s model-based actor (as it was when ``robust`` was trained: lr 1e-2,
+    10 epochs, 2 TD3 critic updates per rollout) against what a real vehicle never tells
+    exactly (:data:`ROBUST_TASK`): each episode draws the mass, thrust gain, body-rate lag,
+    latency, observation noise level and position bias, and a mean wind, and flies a track of
+    the wide mixture (``sim.track_families``); the policy also observes its last action, the
+    leaky integral of the tracking error and the reference 0.1, 0.25, 0.5 and 1 s ahead, and
+    tracks a reference shifted by the integral of its error (integral action).  Three seeds
+    side by side; each seed's policy is selected on the wide validation tracks.
     ``cf2``: ``robust`` on the ``cf2`` vehicle, a Crazyflie flown through its firmware's rate PID,
     mixer and motors (:data:`CF2_TASK`): the policy that flies a real vehicle's inner loop.
     ``mujoco``: the MuJoCo protocol (spec §2.7) on hopper: 1 env, 1 update per step,
@@ -178,6 +178,9 @@ def preset(name: str, **changes) -> RunSpec:
             train = dataclasses.replace(train, model_horizon=50, total_transitions=1_600_000, epochs=10,
                                         updates_per_step=2)  # fmt: skip
             hp = hp.replace(lr_actor=1e-2)
+        if name == "fast":  # no critics; 960k transitions in 12 epochs; the actor's lr 2e-2 falling to 0
+            train = dataclasses.replace(train, updates_per_step=0, total_transitions=960_000, epochs=12)
+            hp = hp.replace(lr_actor=2e-2, lr_decay=1.0)
         memory = name == "fast_model_free"
         task = make_config("practical", hover_centered_thrust=True, obs_memory=memory, obs_privileged=memory)
         base = RunSpec(train=train, hp=hp, task=task)

@@ -26,6 +26,7 @@ class Hyper:
     gamma: float = 0.99  # discount per env step
     tau: float = 5e-4  # Polyak factor (A6: 1 - 0.9995)
     lr_actor: float = 3e-4  # Adam
+    lr_decay: float = 0.0  # the actor's lr falls linearly by this fraction over the run (1: to 0 at its end)
     lr_critic: float = 3e-4  # Adam
     sigma: float = 0.1  # TD3's constant exploration std
     beta: float = 0.08  # T-TD3 weight of the time term
@@ -34,14 +35,14 @@ class Hyper:
     target_sigma: float = 0.2  # σ̃, target-policy smoothing std
     target_clip: float = 0.1  # c, target-policy smoothing clip
     reward_scale: float = 1.0  # rewards are stored times this (keeps Q values O(1..100))
-    model_grad_clip: float = 1.0  # global-norm clip of the model-based actor gradient
+    model_grad_clip: Annotated[float, Suppress] = 1.0  # global-norm clip of the model-based actor gradient
 
 
 # (lower bound, lower bound included, upper bound, upper bound included) of each Hyper field
 _HYPER_RANGES = {
     "gamma": (0.0, True, 1.0, False),
     "tau": (0.0, False, 1.0, True),
-    "beta": (0.0, True, 1.0, True),
+    **dict.fromkeys(("beta", "lr_decay"), (0.0, True, 1.0, True)),
     # an Adam step of more than the weights' own scale, or rewards scaled past 1e3, only diverge
     **dict.fromkeys(("lr_actor", "lr_critic"), (0.0, False, 1.0, True)),
     **dict.fromkeys(("u_max", "reward_scale"), (0.0, False, 1e3, True)),
@@ -88,7 +89,9 @@ class TrainConfig:
     warmup_transitions: int = 25_000  # uniform-random actions before learning
     buffer_size: int = 1_000_000  # rounded up to a multiple of num_envs
     batch_size: int = 256
-    updates_per_step: int = 20  # G, gradient updates per vector env step
+    # G, critic updates per vector env step; 0 (model_horizon > 0 only): no critics train, the
+    # rollouts drive T-TD3's σ and nothing is stored (no replay buffer)
+    updates_per_step: int = 20
     policy_delay: Annotated[int, Suppress] = 2  # d
     # 0: the actor follows ∂Q₁/∂a (TD3, the paper).  H >= 1 (quadrotor only, not in the paper):
     # every vector step rolls the envs H steps with the current policy (plus exploration
@@ -121,9 +124,24 @@ class TrainConfig:
         return max(1, self.model_horizon)
 
     @property
+    def warmup_in_rollouts(self) -> bool:
+        """Whether the random warm-up is the first rollouts of the model-based actor (no critic
+        needs a filled buffer before its first update; the init program then holds no env step)
+        rather than collected before the epochs."""
+        return self.model_horizon > 0 and not self.trains_critics
+
+    @property
     def warmup_steps(self) -> int:
-        """Vector env steps of random warm-up."""
-        return -(-self.warmup_transitions // self.num_envs)
+        """Vector env steps of random warm-up collected before the epochs (0 when the warm-up
+        is in the rollouts)."""
+        return 0 if self.warmup_in_rollouts else -(-self.warmup_transitions // self.num_envs)
+
+    @property
+    def warmup_rollouts(self) -> int:
+        """The first rollouts that act at random and leave the actor alone (with
+        :attr:`warmup_in_rollouts`; else 0): ``warmup_transitions`` in whole rollouts."""
+        per = self.num_envs * self.model_horizon
+        return -(-self.warmup_transitions // per) if self.warmup_in_rollouts else 0
 
     @property
     def steps_per_epoch(self) -> int:
@@ -132,8 +150,15 @@ class TrainConfig:
         return max(1, left // (self.env_steps_per_step * self.epochs))
 
     @property
+    def trains_critics(self) -> bool:
+        """Whether the twin critics train (and so a replay buffer is kept)."""
+        return self.updates_per_step > 0
+
+    @property
     def buffer_capacity(self) -> int:
-        return -(-self.buffer_size // self.num_envs) * self.num_envs
+        """Rows of the replay buffer: ``buffer_size`` rounded up to whole env batches (0 when no
+        critic reads it)."""
+        return -(-self.buffer_size // self.num_envs) * self.num_envs if self.trains_critics else 0
 
     @property
     def transitions_run(self) -> int:
@@ -147,19 +172,25 @@ def _validate(c: TrainConfig) -> None:
     """Raise ``ValueError`` naming the bad field; runs before anything is compiled."""
     for name, allowed in (("algo", ALGOS), ("critic_arch", CRITIC_ARCHS), ("target_noise", TARGET_NOISES)):
         checks.one_of(name, getattr(c, name), allowed)
-    for name in ("num_envs", "total_transitions", "buffer_size", "batch_size", "updates_per_step",
-                 "policy_delay", "epochs"):  # fmt: skip
+    for name in ("num_envs", "total_transitions", "buffer_size", "batch_size", "policy_delay", "epochs"):
         checks.integer(name, getattr(c, name), 1, MAX_TRANSITIONS)
     checks.integer("model_horizon", c.model_horizon, 0, 100_000)
+    # 0 only where the actor learns from the simulator: the paper's actor update reads the critics
+    lo = 0 if c.model_horizon > 0 else 1
+    why = " (0 needs model_horizon > 0)" if lo else ""
+    checks.integer("updates_per_step", c.updates_per_step, lo, MAX_TRANSITIONS, why)
+    if not c.trains_critics and c.noise.t_unit == "update":
+        why = "'episode' or 'env_step' when updates_per_step is 0 (no updates to count)"
+        checks.fail("noise.t_unit", why, c.noise.t_unit)
     checks.integer("warmup_transitions", c.warmup_transitions, 0, MAX_TRANSITIONS)
     checks.integer("n_step", c.n_step, 1, 1000)
     checks.boolean("normalize_obs", c.normalize_obs)
     checks.instance("noise", c.noise, NoiseConfig)
     if len(c.hidden) < 1 or not all(checks.is_integer(h) and h >= 1 for h in c.hidden):
         checks.fail("hidden", "one or more layer widths >= 1", c.hidden)
-    if c.batch_size > c.buffer_size:
+    if c.trains_critics and c.batch_size > c.buffer_size:
         raise ValueError(f"batch_size ({c.batch_size}) must be <= buffer_size ({c.buffer_size})")
-    if c.warmup_transitions < c.batch_size:
+    if c.trains_critics and c.warmup_transitions < c.batch_size:
         raise ValueError(
             f"warmup_transitions ({c.warmup_transitions}) must be >= batch_size ({c.batch_size}) so the "
             "first minibatch is drawn from a filled buffer"
@@ -169,4 +200,10 @@ def _validate(c: TrainConfig) -> None:
         raise ValueError(
             f"total_transitions ({c.total_transitions}) leaves {max(budget, 0)} vector steps after warm-up, "
             f"fewer than epochs ({c.epochs}); raise total_transitions or lower epochs"
+        )
+    rollouts = c.steps_per_epoch * c.epochs
+    if c.warmup_rollouts >= rollouts:
+        raise ValueError(
+            f"warmup_transitions ({c.warmup_transitions}) fills all {rollouts} rollouts of total_transitions "
+            f"({c.total_transitions}): nothing would learn; lower warmup_transitions"
         )

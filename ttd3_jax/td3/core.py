@@ -115,9 +115,12 @@ def _reset_done(s: Setup, key: jax.Array, done: jax.Array, nxt):
 
 
 def store(s: Setup, ts: TrainState, tr: rb.Transition) -> TrainState:
-    """Insert one env batch of transitions; update the observation statistics."""
-    stats = nn.update_obs_stats(ts.obs_stats, tr.next_obs) if s.config.normalize_obs else ts.obs_stats
-    return ts.replace(obs_stats=stats, buffer=rb.insert(ts.buffer, tr), n_tr=ts.n_tr + s.config.num_envs)
+    """Insert one env batch of transitions (when critics train: nothing else reads the
+    buffer); update the observation statistics and the transition count."""
+    c = s.config
+    stats = nn.update_obs_stats(ts.obs_stats, tr.next_obs) if c.normalize_obs else ts.obs_stats
+    buffer = rb.insert(ts.buffer, tr) if c.trains_critics else ts.buffer
+    return ts.replace(obs_stats=stats, buffer=buffer, n_tr=ts.n_tr + c.num_envs)
 
 
 def collect(s: Setup, ts: TrainState, hp: Hyper, actions: jax.Array, key: jax.Array):
@@ -192,6 +195,13 @@ def adam_step(s: Setup, params, opt_state, grads, lr):
     """One Adam step at learning rate ``lr``; returns ``(params, opt_state)``."""
     updates, opt_state = s.adam.update(grads, with_lr(opt_state, lr), params)
     return optax.apply_updates(params, updates), opt_state
+
+
+def actor_lr(s: Setup, ts: TrainState, hp: Hyper) -> jax.Array:
+    """The actor's learning rate now: ``hp.lr_actor``, falling linearly by the fraction
+    ``hp.lr_decay`` as the run's transitions are collected."""
+    done = ts.n_tr.astype(jnp.float32) / s.config.transitions_run
+    return hp.lr_actor * (1.0 - hp.lr_decay * done)
 
 
 def delay_due(c: TrainConfig, ts: TrainState, j: jax.Array) -> jax.Array:

@@ -29,7 +29,7 @@ def actor_update(s: Setup, ts: TrainState, hp: Hyper, obs: jax.Array):
     loss, g = jax.value_and_grad(actor_loss)(
         ts.actor, nets=s.nets, critic=ts.critic, stats=core.obs_stats(s, ts), obs=obs
     )
-    actor, actor_opt = core.adam_step(s, ts.actor, ts.actor_opt, g, hp.lr_actor)
+    actor, actor_opt = core.adam_step(s, ts.actor, ts.actor_opt, g, core.actor_lr(s, ts, hp))
     return core.polyak(ts.replace(actor=actor, actor_opt=actor_opt), hp), loss
 
 

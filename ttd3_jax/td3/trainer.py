@@ -65,6 +65,8 @@ def init(s: Setup, key: jax.Array, hp: Hyper) -> TrainState:
 
     if c.normalize_obs:
         ts = ts.replace(obs_stats=nn.update_obs_stats(ts.obs_stats, ts.env_state.obs))
+    if c.warmup_steps == 0:  # (no scan of length 0: its env step would still be compiled)
+        return ts
     return jax.lax.scan(warm, ts, jax.random.split(k_warm, c.warmup_steps))[0]
 
 
