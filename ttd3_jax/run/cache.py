@@ -259,6 +259,7 @@ class StoredProgram:
         self.donate_argnums = tuple(donate_argnums)
         self._env = _environment()
         self._plain_jit = False  # set when fn turns out not to be storable
+        self._found = {}  # path: the program loaded or traced there (eval_shape, then lower, read once)
 
     def path(self, args: tuple) -> str:
         """The file that holds the program for ``args``."""
@@ -310,7 +311,9 @@ class StoredProgram:
         if self._plain_jit:
             return None
         path = self.path(args)
-        return self._load(path) or self._trace(args, path)
+        if path not in self._found:
+            self._found[path] = self._load(path) or self._trace(args, path)
+        return self._found[path]
 
     def lower(self, *args):
         """Load (or trace and store) the program for ``args`` and lower it."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import optax
 
 from ttd3_jax.td3 import core
 from ttd3_jax.td3 import networks as nn
@@ -54,21 +55,13 @@ def warming_up(s: Setup, ts: TrainState) -> jax.Array:
     return ts.n_tr < c.warmup_rollouts * c.model_horizon * c.num_envs
 
 
-def clip_by_global_norm(g, max_norm):
-    """``g`` scaled to global norm at most ``max_norm``.  Hand-written, not
-    ``optax.clip_by_global_norm``: that rescales as ``g / norm * max_norm``, which rounds
-    differently from the ``g * min(1, max_norm / (norm + 1e-12))`` every ``fast`` figure used."""
-    norm = jnp.sqrt(sum(jnp.sum(x * x) for x in jax.tree.leaves(g)))
-    return jax.tree.map(lambda x: x * jnp.minimum(1.0, max_norm / (norm + 1e-12)), g)
-
-
 def model_actor_update(s: Setup, ts: TrainState, hp: Hyper, key: jax.Array):
     """One actor update from a differentiable rollout; its transitions go to the buffer and
     the envs continue from where it ended.  Returns ``(ts, loss, finished, the rollout's
     (scaled) rewards, flat)``."""
     grad = jax.value_and_grad(model_loss, has_aux=True)
     (loss, ((env_state, ep_return), trs, fin)), g = grad(ts.actor, s, ts, hp, key)
-    g = clip_by_global_norm(g, hp.model_grad_clip)
+    g, _ = optax.clip_by_global_norm(hp.model_grad_clip).update(g, optax.EmptyState())
     actor, actor_opt = core.adam_step(s, ts.actor, ts.actor_opt, g, core.actor_lr(s, ts, hp))
     if s.config.warmup_in_rollouts:  # a warm-up rollout leaves the actor and its Adam state alone
         keep = warming_up(s, ts)
@@ -95,7 +88,7 @@ def vector_step(s: Setup, hp: Hyper, ts: TrainState, _=None):
     returns the state and ``(StepMetrics, Finished)`` (the actor loss is the rollout's; the
     critics' metrics are nan without critics)."""
     c = s.config
-    key, k_noise, _, k_upd = jax.random.split(ts.key, 4)  # as dpg.vector_step splits it
+    key, k_noise, k_upd = jax.random.split(ts.key, 3)
     ts, m_loss, finished, rewards = model_actor_update(s, ts.replace(key=key), hp, k_noise)
     if not c.trains_critics:
         ts, nan = core.update_sigma(s, ts, hp, rewards), jnp.full((), jnp.nan)
