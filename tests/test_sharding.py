@@ -34,7 +34,11 @@ def run_sharded_check(*args: str) -> list[str]:
     It compares sharded with unsharded programs, both compiled in that process with the
     same flags, so LLVM's optimisation level cannot matter to what it checks: at -O0 it
     compiles in about two thirds of the time."""
-    flags = "--xla_force_host_platform_device_count=4 --xla_backend_optimization_level=0"
+    # XLA's fusion emitters named on (XLA's default): with ttd3_jax.compile_flags' emitters off,
+    # the sharded and unsharded sweeps fuse differently, and after 2 epochs of training one of
+    # 16384 buffer entries differed by 5.7e-5 relative (2026-12-07; docs/scaling.md)
+    flags = ("--xla_force_host_platform_device_count=4 --xla_backend_optimization_level=0 "
+             "--xla_cpu_use_fusion_emitters=true")  # fmt: skip
     env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
     p = subprocess.run(
         [sys.executable, os.path.join(HERE, "_sharded_check.py"), *args],
