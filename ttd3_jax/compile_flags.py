@@ -1,10 +1,11 @@
-"""The XLA flags ttd3_jax compiles with: about half the compile time on CPU.
+"""The XLA flags ttd3_jax compiles with: 0.52-0.58x the compile time on CPU.
 
 ``python benchmarks/compile_time.py`` (the ``fast`` preset's three programs, a fresh process
 each, no compilation cache) measures the flags side by side: XLA:CPU's older loop emitters
 instead of its fusion emitters (``--xla_cpu_use_fusion_emitters=false``) and LLVM's
 optimisation level 1 instead of 3 (``--xla_backend_optimization_level=1``) together compile
-in about 0.5x the time, and the epochs run at the same speed (docs/performance.md).  Both
+in 0.52-0.58x the time, and the compiled epochs run about 1.3x slower (docs/performance.md): a
+default run, which compiles once and trains for seconds, is shorter with them.  Both
 move the last bits of results, as another CPU's instruction set does.
 
 :func:`apply` adds them to ``XLA_FLAGS`` when ``ttd3_jax`` is imported, before JAX starts a
