@@ -28,7 +28,6 @@ import weakref
 from typing import TYPE_CHECKING
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
@@ -48,7 +47,8 @@ def _empty(x) -> bool:
 
 
 def _pack(tree):
-    return jax.tree.map(lambda x: jnp.zeros((1,), x.dtype) if _empty(x) else x, tree)
+    """Empty leaves as one zero each (put on the device, so that nothing compiles)."""
+    return jax.tree.map(lambda x: jax.device_put(np.zeros((1,), x.dtype)) if _empty(x) else x, tree)
 
 
 def manager(run_dir: str, max_to_keep: int = 2, asynchronous: bool = False,

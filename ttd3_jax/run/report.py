@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import threading
 
 import jax
 import numpy as np
@@ -77,6 +78,15 @@ def plot_traces(traces: dict[str, dict[str, Trace]], out_dir: str, *, title: str
         axes[-1].set_xlabel("t [s]")
         paths.append(_save(fig, os.path.join(out_dir, f"{prefix}{track}_actions.png")))
     return paths
+
+
+def import_pyplot_in_background() -> threading.Thread:
+    """Import matplotlib's pyplot on a daemon thread (about a second of Python, which the
+    run's learning curve needs only at its end), so that the import overlaps the compiled
+    epochs, which hold no Python lock."""
+    thread = threading.Thread(target=_pyplot, name="import-pyplot", daemon=True)
+    thread.start()
+    return thread
 
 
 def _pyplot():

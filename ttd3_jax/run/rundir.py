@@ -173,8 +173,9 @@ def select_best(run_dir: str, spec: sp.RunSpec, epoch: int, ev, ts) -> None:
     for i in range(spec.num_seeds):
         seed, v = spec.seed + i, float(np.asarray(ev["val_tracking_error"])[i])
         if improves_selection(record, seed, v):
-            stats = index(ts.obs_stats, i) if spec.train.normalize_obs else None
-            ckpt.save_policy(run_dir, seed, epoch, v, {"actor": index(ts.actor, i), "obs_stats": stats})
+            actor, stats = jax.device_get((ts.actor, ts.obs_stats))  # sliced on the host: nothing compiles
+            stats = index(stats, i) if spec.train.normalize_obs else None
+            ckpt.save_policy(run_dir, seed, epoch, v, {"actor": index(actor, i), "obs_stats": stats})
 
 
 def selected_policies(run_dir: str) -> list[dict]:

@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
 from ttd3_jax import checks
@@ -86,8 +87,13 @@ def initial_actor(s: Setup, key: jax.Array) -> dict:
 
 def seed_keys(seed: int, num_seeds: int) -> jax.Array:
     """Per-seed keys: seed i of a vmapped run equals seed ``seed + i`` run alone."""
+    return _fold_seeds(np.arange(seed, seed + num_seeds, dtype=np.int32))
+
+
+@jax.jit
+def _fold_seeds(seeds: jax.Array) -> jax.Array:  # one small program, not one per eager op
     root = jax.random.PRNGKey(0)
-    return jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.arange(seed, seed + num_seeds))
+    return jax.vmap(lambda i: jax.random.fold_in(root, i))(seeds)
 
 
 def epoch(s: Setup, step: StepFn, ts: TrainState, hp: Hyper):
