@@ -449,6 +449,32 @@ def shown_words(argv: list[str]) -> list[str]:
     return words
 
 
+def readme(title: str, command: str, device: str, elapsed: float, notes: list[str], vehicle: str,
+           nmpc_source: str, table_rows: list[dict], labels: list[str],
+           n_seeds: int) -> list[str]:  # fmt: skip
+    """The README's lines: what ran where, the NMPC and the rows, the table, the descriptions."""
+    k_all = sum(r["target"]["k"] == r["target"]["n"] for r in table_rows)
+    return [
+        f"# The {title} policy against its targets (issue 37)", "",
+        f"`{command}` on {device}, {datetime.date.today()}, {elapsed / 60:.0f} min.", "",
+        *(f"{n}" for n in notes), "",
+        f"NMPC: the paper preset's, 1 kHz, sensed state, default options, flying the `{vehicle}` vehicle"
+        f"{LOOP_NOTE if vehicle == 'cf2' else ''}; its robustness rows {nmpc_source}. "
+        f"Policies at their run's rate. Paper tracks: Spiral-RT and LOS-RT seed 0, nominal. Suite "
+        f"(`--suite {SUITE}`): 3 s from rest on p_d(0), steady = mean ‖e‖ after {gen.STEADY_AFTER_S:g} s, "
+        "overshoot past the step's target in % of the step. Robustness rows (`ttd3_jax.control.robustness`): "
+        "one fixed mismatch each, unknown to every controller, the same reference; Spiral-RT, and LOS-RT "
+        f"seeds 1..{n_seeds} (mean). Crash: ‖e‖ > {EVAL_CRASH_M:g} m, one rule for all.", "",
+        "Target column: on how many of the robust seeds the row's target is met (Σ‖e‖ ≤ the NMPC's, steady "
+        f"≤ {STEADY_FACTOR:g}× the NMPC's, overshoot ≤ {OVERSHOOT_MAX:g} %, paper tracks below the paper's "
+        "T-TD3; a seed crashing more often than the NMPC misses), and where missed by how much: the worst "
+        f"seed's ratio to the NMPC (or the paper). {k_all} of {len(table_rows)} rows met on every seed.", "",
+        *table(table_rows, labels), "",
+        *(f"- {k}: {v}" for k, v in gen.DESCRIPTIONS.items()),
+        *(f"- {k}: {v}" for k, v in rob.ROBUSTNESS_DESCRIPTIONS.items()),
+    ]  # fmt: skip
+
+
 def main(argv=None) -> int:
     ap = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -476,26 +502,9 @@ def main(argv=None) -> int:
     nmpc_source = (f"read from `{args.nmpc_robustness}` (checked: the default NMPC on the paper preset "
                    "and this vehicle, today's conditions and seeds)" if saved is not None
                    else "computed here")  # fmt: skip
-    k_all = sum(r["target"]["k"] == r["target"]["n"] for r in table_rows)
-    lines = [
-        f"# The {reference_preset(robust.spec)} policy against its targets (issue 37)", "",
-        f"`{command}` on {device}, {datetime.date.today()}, {elapsed / 60:.0f} min.", "",
-        *(f"{n}" for n in notes), "",
-        f"NMPC: the paper preset's, 1 kHz, sensed state, default options, flying the `{vehicle}` vehicle"
-        f"{LOOP_NOTE if vehicle == 'cf2' else ''}; its robustness rows {nmpc_source}. "
-        f"Policies at their run's rate. Paper tracks: Spiral-RT and LOS-RT seed 0, nominal. Suite "
-        f"(`--suite {SUITE}`): 3 s from rest on p_d(0), steady = mean ‖e‖ after {gen.STEADY_AFTER_S:g} s, "
-        "overshoot past the step's target in % of the step. Robustness rows (`ttd3_jax.control.robustness`): "
-        "one fixed mismatch each, unknown to every controller, the same reference; Spiral-RT, and LOS-RT "
-        f"seeds 1..{len(seeds)} (mean). Crash: ‖e‖ > {EVAL_CRASH_M:g} m, one rule for all.", "",
-        "Target column: on how many of the robust seeds the row's target is met (Σ‖e‖ ≤ the NMPC's, steady "
-        f"≤ {STEADY_FACTOR:g}× the NMPC's, overshoot ≤ {OVERSHOOT_MAX:g} %, paper tracks below the paper's "
-        "T-TD3; a seed crashing more often than the NMPC misses), and where missed by how much: the worst "
-        f"seed's ratio to the NMPC (or the paper). {k_all} of {len(table_rows)} rows met on every seed.", "",
-        *table(table_rows, labels), "",
-        *(f"- {k}: {v}" for k, v in gen.DESCRIPTIONS.items()),
-        *(f"- {k}: {v}" for k, v in rob.ROBUSTNESS_DESCRIPTIONS.items()),
-    ]  # fmt: skip
+    title = reference_preset(robust.spec)
+    lines = readme(title, command, device, elapsed, notes, vehicle, nmpc_source, table_rows, labels,
+                   len(seeds))  # fmt: skip
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "README.md"), "w") as fh:
         fh.write("\n".join(lines) + "\n")
