@@ -1,5 +1,5 @@
 """The NMPC's model of a ``firmware`` vehicle's inner loop: the rate PID, mixer and rotors of
-:mod:`ttd3_jax.sim.inner_loop` reduced to a smooth continuous-time system per body axis that a
+:mod:`ttd3_jax.sim.inner_loop` reduced to a continuous-time system per body axis that a
 50 ms node step can integrate with a few RK4 substeps.
 
 The plant (``sim.inner_loop``) runs, per axis, every 1 ms: ``τ_c = clip(kp e + ki I − kd ω̇,
@@ -8,19 +8,22 @@ torques and the collective thrust into four rotor thrusts, and the rotors follow
 commands with a first-order lag (``tau_up`` spinning up, ``tau_down`` down).  The reduced model
 keeps that structure in continuous time and replaces the four rotors by two lags:
 
-    J ω̇ = τ − ω × Jω                     (the rigid body)
-    τ̇ = (clip(kp e + ki I − kd ω̇, ±τ_max) − τ) / tau_torque      (the rotors, differentially)
+    τ_c = clip(kp e + ki I − kd ω̇, ±τ_max),  (T_m, τ_m) = wrench(mix(T_c, τ_c))   (the firmware)
+    J ω̇ = τ − ω × Jω                                               (the rigid body)
+    τ̇ = (τ_m − τ) / tau_torque                                     (the rotors, differentially)
     İ = e,  I clipped to ±i_limit after each substep
-    Ṫ = (T_c − T) / (tau_up if T_c > T else tau_down)            (the rotors, collectively)
+    Ṫ = (T_m − T) / (tau_up if T_m > T else tau_down)              (the rotors, collectively)
     m v̇ = T body_z − drag v − m g
 
-``tau_torque`` = (tau_up + tau_down) / 2: a torque step speeds up the rotors on one side and
-slows down those on the other, each with its own time constant.  The D term's ``ω̇`` is the
-body's own (``(τ − ω × Jω) / J``), so ``τ_c`` is algebraic in the state.  Linear rotors (thrust
-follows speed with the speed's time constant: the thrust curve linearised), no mixer
-saturation other than the thrust box; both are what the firmware keeps the vehicle away from
-near hover.  ``tests/test_loop_model.py`` checks the model's rate and thrust steps against the
-full simulated loop.
+``mix``/``wrench`` are the plant's own (``sim.inner_loop``: the firmware's cap, attitude first,
+and each rotor clipped to its limits), so the model knows that torque at full thrust costs
+thrust.  ``tau_torque`` = (tau_up + tau_down) / 2: a torque step speeds up the rotors on one
+side and slows down those on the other, each with its own time constant.  The D term's ``ω̇`` is
+the body's own (``(τ − ω × Jω) / J``), so ``τ_c`` is algebraic in the state.  Left out: the
+PID's 1 ms discretisation and the quadratic thrust curve (thrust follows its command with the
+rotor speed's lag).  ``tests/test_loop_model.py`` checks the model's rate and thrust steps
+against the full simulated loop; docs/paper-notes.md ("The NMPC's model of ``cf2``") has the
+figures.
 
 The hidden states ``(τ, I, T)`` are not sensed: :func:`propagate_hidden` carries them from one
 control step to the next through the model, from the sensed rigid-body state and the command the
