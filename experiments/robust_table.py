@@ -8,9 +8,10 @@ checked against its target.
 
 The policies are each seed's policy selected on the validation tracks (``best/``), at their
 run's control rate; the NMPC is the paper preset's, at 1 kHz, as in
-``experiments/generalization.py`` and ``results/robustness``.  Every controller is judged
-crashed by one rule (‖e‖ > 1 m).  The targets (issue 37, item 4), on every seed of
-ROBUST_RUN:
+``experiments/generalization.py`` and ``results/robustness``, flying ROBUST_RUN's vehicle (a
+``cf2`` run: the ``cf2`` vehicle, its firmware loop in the NMPC's model,
+``control.loop_model``).  Every controller is judged crashed by one rule (‖e‖ > 1 m).  The
+targets (issue 37, item 4), on every seed of ROBUST_RUN:
 
 - Spiral-RT and LOS-RT seed 0 (nominal): Σ‖e‖ below the paper's T-TD3 (25.99 / 398.74);
 - every suite track: Σ‖e‖ ≤ the NMPC's, steady-state error ≤ 2× the NMPC's, and on the step
@@ -21,8 +22,9 @@ ROBUST_RUN:
 A seed that crashes more often than the NMPC on a row misses that row's target.  The NMPC's
 robustness at 1 kHz takes ≈ 20 min for 20 seeds on 2 CPU cores: ``--nmpc-robustness FILE``
 reads a saved ``python -m ttd3_jax.evaluate --controller nmpc --robustness --json FILE``
-instead, accepted only when it was written by the default NMPC on the paper preset's nominal
-config, with today's robustness conditions (names and descriptions) and LOS-RT seeds
+(``--vehicle NAME`` for a run of that vehicle) instead, accepted only when it was written by the
+default NMPC on the paper preset's nominal config with the run's vehicle, with today's
+robustness conditions (names and descriptions) and LOS-RT seeds
 1..``--robustness-seeds``.  Writes ``README.md`` (the table) and ``robust_table.json``
 (every number) to ``--out``.
 """
@@ -56,11 +58,13 @@ from ttd3_jax.run.report import device_description, json_safe
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.config import EVAL_CRASH_M, make_config
 from ttd3_jax.sim.env import TrackingEnv
+from ttd3_jax.sim.vehicles import VEHICLE_NAMES, vehicle_of, with_vehicle
 
 SUITE = "generalization"
 NMPC = "NMPC"
 PAPER_TTD3 = {t: PAPER["T-TD3"][t]["tracking_error"] for t in tr.TEST_TRACKS}  # 25.99, 398.74
 TRACK_TITLES = {"spiral_rt": "Spiral-RT", "los_rt": "LOS-RT"}
+LOOP_NOTE = " (its firmware loop in the NMPC's model: `ttd3_jax.control.loop_model`)"
 STEADY_FACTOR = 2.0  # the steady-state error's target: at most this times the NMPC's
 OVERSHOOT_MAX = 10.0  # %, the step's overshoot target
 
@@ -128,27 +132,45 @@ def _first_difference(a, b, path: str = "") -> str | None:
     return None if a == b else path.rstrip(".")
 
 
-def nmpc_file_mismatch(d, num_seeds: int) -> str | None:
+def nmpc_config(vehicle: str = "paper"):
+    """The NMPC's nominal config: the paper preset (1 kHz) flying the named ``vehicle``."""
+    cfg = make_config("paper")
+    return cfg if vehicle == "paper" else with_vehicle(cfg, vehicle)
+
+
+def run_vehicle(run: rundir.LoadedRun) -> str:
+    """The named vehicle ``run`` flies (``paper`` for a custom one: the NMPC's default)."""
+    return vehicle_of(run.env_config.vehicle.quad) or "paper"
+
+
+def nmpc_file_mismatch(d, num_seeds: int, vehicle: str | None = "paper") -> str | None:
     """Why a saved ``evaluate --controller nmpc --robustness --json`` result ``d`` cannot
     stand for the NMPC here (one line), or ``None`` when it provably can: written by the
-    default NMPC (no options) on the paper preset's nominal config (today's), its conditions
-    today's by name and description, each with Spiral-RT and LOS-RT seeds 1..``num_seeds``."""
+    default NMPC (no options) on the paper preset's nominal config (today's) flying ``vehicle``
+    (``None``: the named vehicle ``d`` records), its conditions today's by name and
+    description, each with Spiral-RT and LOS-RT seeds 1..``num_seeds``."""
     if not isinstance(d, dict) or "robustness" not in d:
         return "it holds no robustness results (write it with evaluate --controller nmpc --robustness --json)"
     if d.get("controller") != "nmpc":
         return f"it was written by controller {d.get('controller')!r}, not the NMPC"
     if d.get("options"):
         return f"its NMPC had options {d['options']}, not the defaults used here"
-    if d.get("preset") != "paper" or d.get("vehicle") not in ("paper", None) or d.get("task_args"):
+    if vehicle is None:
+        vehicle = d.get("vehicle") or "paper"
+        if vehicle not in VEHICLE_NAMES:
+            return f"its vehicle {vehicle!r} is not one of {list(VEHICLE_NAMES)}"
+    allowed = ("paper", None) if vehicle == "paper" else (vehicle,)
+    if d.get("preset") != "paper" or d.get("vehicle") not in allowed or d.get("task_args"):
         return (f"it is for preset {d.get('preset')!r}, vehicle {d.get('vehicle')!r}, task flags "
-                f"{d.get('task_args')}, not the paper preset's nominal vehicle")  # fmt: skip
+                f"{d.get('task_args')}, not the paper preset's nominal {vehicle} vehicle")  # fmt: skip
     env = d.get("env_config")
-    paper = json.loads(json.dumps(json_safe(dataclasses.asdict(make_config("paper")))))
+    want = json.loads(json.dumps(json_safe(dataclasses.asdict(nmpc_config(vehicle)))))
     if not isinstance(env, dict):
         return "it does not record its env config"
-    where = _first_difference(env, paper)
+    where = _first_difference(env, want)
     if where:
-        return f"its env config differs from the paper preset's in {where}"
+        named = "" if vehicle == "paper" else f" ({vehicle} vehicle)"
+        return f"its env config differs from the paper preset's{named} in {where}"
     descriptions = d.get("robustness_conditions")
     if not isinstance(descriptions, dict) or set(descriptions) != set(rob.ROBUSTNESS_DESCRIPTIONS):
         have = sorted(descriptions) if isinstance(descriptions, dict) else descriptions
@@ -178,7 +200,7 @@ def nmpc_file_mismatch(d, num_seeds: int) -> str | None:
 
 
 def read_nmpc_file(path: str, num_seeds: int) -> tuple[dict | None, str | None]:
-    """``(its robustness results, None)``, or ``(None, why not)``."""
+    """``(its robustness results and the vehicle it flew, None)``, or ``(None, why not)``."""
     try:
         with open(path) as fh:
             d = json.load(fh)
@@ -186,8 +208,10 @@ def read_nmpc_file(path: str, num_seeds: int) -> tuple[dict | None, str | None]:
         return None, f"cannot read it ({e.strerror})"
     except (ValueError, UnicodeDecodeError) as e:
         return None, f"it is not valid JSON ({e})"
-    why = nmpc_file_mismatch(d, num_seeds)
-    return (None, why) if why else (d["robustness"]["nmpc"], None)
+    why = nmpc_file_mismatch(d, num_seeds, None)
+    if why:
+        return None, why
+    return dict(rows=d["robustness"]["nmpc"], vehicle=d.get("vehicle") or "paper"), None
 
 
 # --------------------------------------------------------------------------- arguments
@@ -219,10 +243,16 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def reference_preset(spec: sp.RunSpec) -> str:
+    """The preset ``spec`` is judged as: ``cf2`` for a firmware vehicle, else ``robust``."""
+    return "cf2" if spec.task.vehicle.quad.rate_model == "firmware" else "robust"
+
+
 def robust_differences(spec: sp.RunSpec) -> list[str]:
-    """The fields of ``robust``'s task (``spec.ROBUST_TASK``) and actor update that ``spec``
-    does not share, by name."""
-    out = [k for k, v in sp.ROBUST_TASK.items() if spec.task.get(k) != v]
+    """The fields of its reference preset's task (``spec.ROBUST_TASK``, ``spec.CF2_TASK``) and
+    actor update that ``spec`` does not share, by name."""
+    task = sp.CF2_TASK if reference_preset(spec) == "cf2" else sp.ROBUST_TASK
+    out = [k for k, v in task.items() if spec.task.get(k) != v]
     if spec.train.model_horizon == 0:
         out.append("model_horizon")
     return out
@@ -255,6 +285,11 @@ def check_args(
         if why:
             ap.error(f"--nmpc-robustness {args.nmpc_robustness}: {why}")
     args.robust_run, robust = load(ap, "ROBUST_RUN", args.robust_run)
+    if saved is not None:
+        if saved["vehicle"] != run_vehicle(robust):
+            ap.error(f"--nmpc-robustness {args.nmpc_robustness}: its NMPC flew the {saved['vehicle']} "
+                     f"vehicle, ROBUST_RUN the {run_vehicle(robust)} vehicle")  # fmt: skip
+        saved = saved["rows"]
     fast = None
     if args.fast_run is not None:
         args.fast_run, fast = load(ap, "--fast-run", args.fast_run)
@@ -296,10 +331,10 @@ def progress(name: str, condition: str, r: dict) -> None:
           flush=True)  # fmt: skip
 
 
-def evaluate_nmpc(seeds: tuple, saved: dict | None) -> dict:
-    """The NMPC (paper preset, 1 kHz, sensed state): the test tracks and the suite, and the
-    robustness rows (``saved``, or computed)."""
-    cfg = make_config("paper")
+def evaluate_nmpc(seeds: tuple, saved: dict | None, vehicle: str = "paper") -> dict:
+    """The NMPC (paper preset, 1 kHz, sensed state, flying ``vehicle``): the test tracks and the
+    suite, and the robustness rows (``saved``, or computed)."""
+    cfg = nmpc_config(vehicle)
     nominal = cfg.for_eval("los_rt")
     build = controller_build("nmpc", nominal)
     ev = Evaluator(TrackingEnv(nominal), build)
@@ -388,12 +423,11 @@ def run_note(flag: str, path: str, run: rundir.LoadedRun, robust: bool) -> str:
             f"{run.epoch}, {1 / run.env_config.control_dt:g} Hz)")  # fmt: skip
     if robust:
         diff = robust_differences(run.spec)
+        name = reference_preset(run.spec)
         if diff:
-            text += f". **Not the `robust` preset**: its task differs from `robust`'s in {', '.join(diff)}"
-        if len(seeds) != sp.preset("robust").num_seeds:
-            text += (
-                f". It has {len(seeds)} seed(s), not the {sp.preset('robust').num_seeds} the targets ask for"
-            )
+            text += f". **Not the `{name}` preset**: its task differs from `{name}`'s in {', '.join(diff)}"
+        if len(seeds) != sp.preset(name).num_seeds:
+            text += f". It has {len(seeds)} seed(s), not the {sp.preset(name).num_seeds} the targets ask for"
     return text + "."
 
 
@@ -415,6 +449,32 @@ def shown_words(argv: list[str]) -> list[str]:
     return words
 
 
+def readme(title: str, command: str, device: str, elapsed: float, notes: list[str], vehicle: str,
+           nmpc_source: str, table_rows: list[dict], labels: list[str],
+           n_seeds: int) -> list[str]:  # fmt: skip
+    """The README's lines: what ran where, the NMPC and the rows, the table, the descriptions."""
+    k_all = sum(r["target"]["k"] == r["target"]["n"] for r in table_rows)
+    return [
+        f"# The {title} policy against its targets (issue 37)", "",
+        f"`{command}` on {device}, {datetime.date.today()}, {elapsed / 60:.0f} min.", "",
+        *(f"{n}" for n in notes), "",
+        f"NMPC: the paper preset's, 1 kHz, sensed state, default options, flying the `{vehicle}` vehicle"
+        f"{LOOP_NOTE if vehicle == 'cf2' else ''}; its robustness rows {nmpc_source}. "
+        f"Policies at their run's rate. Paper tracks: Spiral-RT and LOS-RT seed 0, nominal. Suite "
+        f"(`--suite {SUITE}`): 3 s from rest on p_d(0), steady = mean ‖e‖ after {gen.STEADY_AFTER_S:g} s, "
+        "overshoot past the step's target in % of the step. Robustness rows (`ttd3_jax.control.robustness`): "
+        "one fixed mismatch each, unknown to every controller, the same reference; Spiral-RT, and LOS-RT "
+        f"seeds 1..{n_seeds} (mean). Crash: ‖e‖ > {EVAL_CRASH_M:g} m, one rule for all.", "",
+        "Target column: on how many of the robust seeds the row's target is met (Σ‖e‖ ≤ the NMPC's, steady "
+        f"≤ {STEADY_FACTOR:g}× the NMPC's, overshoot ≤ {OVERSHOOT_MAX:g} %, paper tracks below the paper's "
+        "T-TD3; a seed crashing more often than the NMPC misses), and where missed by how much: the worst "
+        f"seed's ratio to the NMPC (or the paper). {k_all} of {len(table_rows)} rows met on every seed.", "",
+        *table(table_rows, labels), "",
+        *(f"- {k}: {v}" for k, v in gen.DESCRIPTIONS.items()),
+        *(f"- {k}: {v}" for k, v in rob.ROBUSTNESS_DESCRIPTIONS.items()),
+    ]  # fmt: skip
+
+
 def main(argv=None) -> int:
     ap = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -433,32 +493,18 @@ def main(argv=None) -> int:
     judged = list(results)
     if fast is not None:
         results.update(evaluate_policies("fast", fast, seeds))
-    results[NMPC] = evaluate_nmpc(seeds, saved)
+    vehicle = run_vehicle(robust)
+    results[NMPC] = evaluate_nmpc(seeds, saved, vehicle)
     elapsed = time.perf_counter() - t0
     table_rows = rows(results, judged)
     labels = list(results)
     command = "python experiments/robust_table.py " + shlex.join(shown_words(argv))
-    nmpc_source = (f"read from `{args.nmpc_robustness}` (checked: the default NMPC on the paper preset, "
-                   "today's conditions and seeds)" if saved is not None else "computed here")  # fmt: skip
-    k_all = sum(r["target"]["k"] == r["target"]["n"] for r in table_rows)
-    lines = [
-        "# The robust policy against its targets (issue 37)", "",
-        f"`{command}` on {device}, {datetime.date.today()}, {elapsed / 60:.0f} min.", "",
-        *(f"{n}" for n in notes), "",
-        f"NMPC: the paper preset's, 1 kHz, sensed state, default options; its robustness rows {nmpc_source}. "
-        f"Policies at their run's rate. Paper tracks: Spiral-RT and LOS-RT seed 0, nominal. Suite "
-        f"(`--suite {SUITE}`): 3 s from rest on p_d(0), steady = mean ‖e‖ after {gen.STEADY_AFTER_S:g} s, "
-        "overshoot past the step's target in % of the step. Robustness rows (`ttd3_jax.control.robustness`): "
-        "one fixed mismatch each, unknown to every controller, the same reference; Spiral-RT, and LOS-RT "
-        f"seeds 1..{len(seeds)} (mean). Crash: ‖e‖ > {EVAL_CRASH_M:g} m, one rule for all.", "",
-        "Target column: on how many of the robust seeds the row's target is met (Σ‖e‖ ≤ the NMPC's, steady "
-        f"≤ {STEADY_FACTOR:g}× the NMPC's, overshoot ≤ {OVERSHOOT_MAX:g} %, paper tracks below the paper's "
-        "T-TD3; a seed crashing more often than the NMPC misses), and where missed by how much: the worst "
-        f"seed's ratio to the NMPC (or the paper). {k_all} of {len(table_rows)} rows met on every seed.", "",
-        *table(table_rows, labels), "",
-        *(f"- {k}: {v}" for k, v in gen.DESCRIPTIONS.items()),
-        *(f"- {k}: {v}" for k, v in rob.ROBUSTNESS_DESCRIPTIONS.items()),
-    ]  # fmt: skip
+    nmpc_source = (f"read from `{args.nmpc_robustness}` (checked: the default NMPC on the paper preset "
+                   "and this vehicle, today's conditions and seeds)" if saved is not None
+                   else "computed here")  # fmt: skip
+    title = reference_preset(robust.spec)
+    lines = readme(title, command, device, elapsed, notes, vehicle, nmpc_source, table_rows, labels,
+                   len(seeds))  # fmt: skip
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "README.md"), "w") as fh:
         fh.write("\n".join(lines) + "\n")
@@ -468,7 +514,7 @@ def main(argv=None) -> int:
         for r in table_rows
     }  # fmt: skip
     meta = dict(command=command, device=device, date=str(datetime.date.today()), elapsed_s=elapsed,
-                robust_run=os.path.basename(os.path.normpath(args.robust_run)),
+                robust_run=os.path.basename(os.path.normpath(args.robust_run)), vehicle=vehicle,
                 fast_run=os.path.basename(os.path.normpath(args.fast_run)) if args.fast_run else None,
                 robust_differences=robust_differences(robust.spec), judged=judged, los_seeds=list(seeds),
                 nmpc_robustness=args.nmpc_robustness, paper_ttd3=PAPER_TTD3, steady_factor=STEADY_FACTOR,

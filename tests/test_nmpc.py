@@ -199,6 +199,7 @@ def test_registered_in_evaluate():
         (dict(qp_iters=0), "qp_iters"),
         (dict(solve_every=0), "solve_every"),
         (dict(node_substeps=0), "node_substeps"),
+        (dict(loop_substeps=0), "loop_substeps"),
         (dict(regularization=-1e-6), "regularization"),
         (dict(line_search="yes"), "line_search"),
     ],
@@ -292,14 +293,11 @@ def test_tune_nmpc_on_the_wide_validation_tracks(tmp_path, capsys):
     assert "--num-tracks must be in [1, 18], got 19" in capsys.readouterr().err
 
 
-def test_the_nmpc_models_a_firmware_vehicle_as_a_rate_lag_of_its_rotors():
-    from ttd3_jax.control.nmpc import design_model, rigid_body
+def test_the_nmpc_models_a_firmware_vehicle_with_its_loop_and_senses_only_the_rigid_body():
+    from ttd3_jax.control.nmpc import models_loop, rigid_body
     from ttd3_jax.sim.dynamics import model_state
     from ttd3_jax.sim.vehicles import CF2
 
-    m = design_model(CF2)
-    assert (m.rate_model, m.loop, m.tau_rate) == ("first_order", None, CF2.loop.tau_up)
-    assert m.mass == CF2.mass and m.inertia == CF2.inertia
-    assert design_model(QuadParams()) == QuadParams()
+    assert models_loop(CF2) and not models_loop(QuadParams())
     x = rigid_body(model_state(CF2, QuadState.hover((1.0, 2.0, 3.0))))
     assert type(x) is QuadState and tuple(np.asarray(x.p)) == (1.0, 2.0, 3.0)

@@ -5,6 +5,7 @@ run through the whole script.  Everything runs on CPU."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import os
@@ -106,6 +107,24 @@ def test_the_nmpc_file_check_refuses_another_condition_set_controller_or_config(
     d = nmpc_file(3)
     d["robustness"]["nmpc"]["wind0.5"]["los_rt"]["seeds"] = [1, 2, 4]
     assert rt.nmpc_file_mismatch(d, 3) == "its LOS-RT seeds are 1..4, not 1..3 (--robustness-seeds 3)"
+
+
+def test_a_cf2_nmpc_file_stands_only_for_a_cf2_run():
+    """A saved NMPC robustness file of the cf2 vehicle (evaluate --vehicle cf2) is checked
+    against the paper preset with the cf2 vehicle, and a paper file is no cf2 file."""
+    rt = _script()
+    d = nmpc_file(1)
+    d["vehicle"] = "cf2"
+    d["env_config"] = json.loads(json.dumps(rt.json_safe(dataclasses.asdict(rt.nmpc_config("cf2")))))
+    assert rt.nmpc_file_mismatch(d, 1, "cf2") is None and rt.nmpc_file_mismatch(d, 1, None) is None
+    assert "not the paper preset's nominal paper vehicle" in rt.nmpc_file_mismatch(d, 1, "paper")
+    assert "not the paper preset's nominal cf2 vehicle" in rt.nmpc_file_mismatch(nmpc_file(1), 1, "cf2")
+    d["env_config"]["vehicle"]["quad"]["mass"] = 0.04
+    assert rt.nmpc_file_mismatch(d, 1, None) == (
+        "its env config differs from the paper preset's (cf2 vehicle) in vehicle.quad.mass"
+    )
+    assert rt.reference_preset(sp.preset("cf2")) == "cf2" and rt.robust_differences(sp.preset("cf2")) == []
+    assert rt.reference_preset(sp.preset("robust")) == "robust"
 
 
 # --------------------------------------------------------------------------- arguments

@@ -2,8 +2,13 @@
 
 Model: the env's own :func:`~ttd3_jax.sim.dynamics.rk4_step` and ``QuadParams`` (rate model
 included), the input held over each node interval (``node_substeps`` RK4 steps of
-``dt_node`` s).  The plan ``U`` (N, 4) is physical ``[thrust, ω_x, ω_y, ω_z]`` inside the
-env's box.  Wind is not modelled.
+``dt_node`` s).  A ``firmware`` vehicle (``QuadParams.loop`` set: a 1 kHz rate PID through rotor
+lags, which a 50 ms node step cannot integrate) is modelled by :mod:`ttd3_jax.control.loop_model`
+instead: the PID, rotors and rigid body as a continuous-time system with the body torque, the
+PID's integral and the collective thrust as extra states (``loop_substeps`` RK4 steps per node);
+the controller carries those unsensed states from step to step through the same model under the
+commands it applied (:func:`~ttd3_jax.control.loop_model.propagate_hidden`).  The plan ``U``
+(N, 4) is physical ``[thrust, ω_x, ω_y, ω_z]`` inside the env's box.  Wind is not modelled.
 
 Cost (rpg_mpc default weights, ``Q`` times ``weight_scale``, 4 from the validation-track
 tuning of ``experiments/tune_nmpc.py``)::
@@ -47,6 +52,7 @@ from jax.flatten_util import ravel_pytree
 from jax.scipy.linalg import cho_solve
 
 from ttd3_jax import checks
+from ttd3_jax.control import loop_model as lm
 from ttd3_jax.control.closed_loop import Controller
 from ttd3_jax.sim import trajectories as tr
 from ttd3_jax.sim.dynamics import QuadParams, QuadState, quat_conj, quat_mul, rk4_step
@@ -77,6 +83,9 @@ class NMPCConfig:
     solve_every: int = 1  # control steps between re-solves
     line_search: bool = True  # α ∈ {1, ½, ¼, ⅛} on the true cost
     node_substeps: int = 1  # RK4 steps per node interval
+    # RK4 steps per node interval of a firmware vehicle's loop model (control.loop_model): 10 ms
+    # steps, 4-5 per period of its rate loop's oscillation (27 rad/s)
+    loop_substeps: int = 5
     regularization: float = 1e-6  # added to the diagonal of H
 
     def __post_init__(self):
@@ -97,7 +106,7 @@ class NMPCConfig:
 
 # the bounds NMPCConfig checks: integers in [1, hi], numbers in (0, hi], weights (> 0 if True)
 _INTEGERS = {"horizon": 500, "sqp_iters_first": 1000, "sqp_iters": 1000, "qp_iters": 1000,
-             "solve_every": 100_000, "node_substeps": 100}  # fmt: skip
+             "solve_every": 100_000, "node_substeps": 100, "loop_substeps": 100}  # fmt: skip
 _NUMBERS = {"dt_node": 1.0, "weight_scale": 1e6, "regularization": 1.0}
 _WEIGHTS = {"w_pos": True, "w_vel": False, "w_att": False, "w_input": False}
 
@@ -119,21 +128,19 @@ class NMPCCarry:
     age: jax.Array  # int32, control steps since the plan was computed
     solves: jax.Array  # int32, number of solves so far
     cost: jax.Array  # cost J of the plan at its solve (diagnostic)
+    # a firmware vehicle's unsensed loop states (loop_model.HIDDEN,) at this step; (0,) otherwise
+    hidden: jax.Array
 
 
-def design_model(quad: QuadParams) -> QuadParams:
-    """The vehicle as the NMPC models it: the vehicle itself, except that a ``firmware`` vehicle's
-    inner loop (a 1 kHz PID through rotor lags, too stiff for the NMPC's 50 ms node steps) is
-    modelled as body rates following the command with a first-order lag of the rotors' spin-up
-    time constant, the slowest part of the chain (``cf2``: 0.136 s); thrust acts at once."""
-    if quad.rate_model != "firmware":
-        return quad
-    return quad.replace(rate_model="first_order", loop=None, tau_rate=quad.loop.tau_up)
+def models_loop(quad: QuadParams) -> bool:
+    """Whether the NMPC models ``quad``'s inner loop (:mod:`~ttd3_jax.control.loop_model`): a
+    ``firmware`` vehicle; every other vehicle is modelled by the env's own dynamics."""
+    return quad.rate_model == "firmware"
 
 
 def rigid_body(x: QuadState) -> QuadState:
-    """``x``'s position, velocity, attitude and body rates (a ``firmware`` state without its rotors
-    and PID, which the NMPC's model does not carry)."""
+    """``x``'s position, velocity, attitude and body rates (what the controller senses: a
+    ``firmware`` state without its rotors and PID)."""
     return QuadState(p=x.p, v=x.v, q=x.q, w=x.w)
 
 
@@ -152,7 +159,8 @@ class NMPC:
     def __init__(self, env_config, cfg: NMPCConfig | None = None):
         self.env_config = env_config
         self.cfg = cfg = cfg or NMPCConfig()
-        self.params: QuadParams = design_model(env_config.vehicle.quad)
+        self.params: QuadParams = env_config.vehicle.quad
+        self.loop = models_loop(self.params)
         self.dt = env_config.dt
         # physics step offsets of the nodes 0..N (reference sampling)
         self.node_steps = tuple(int(round(i * cfg.dt_node / self.dt)) for i in range(cfg.horizon + 1))
@@ -186,12 +194,33 @@ class NMPC:
         u = jnp.clip(u[:-1], lb, ub)
         return References(pos=pos[1:], vel=vel[1:], quat=quat[1:], u=u)
 
+    def node_step(self, x: QuadState, u: jax.Array) -> QuadState:
+        """The model's state one node interval after ``x`` under the input ``u`` (4,)."""
+        cfg = self.cfg
+        if self.loop:
+            return lm.step(self.params, x, u, cfg.dt_node, cfg.loop_substeps)
+        return rk4_step(self.params, x, u, cfg.dt_node, substeps=cfg.node_substeps)
+
+    def model_state(self, sensed: QuadState, hidden: jax.Array) -> QuadState:
+        """The model's state from the sensed rigid body and the carried hidden states."""
+        return lm.with_hidden(sensed, hidden) if self.loop else sensed
+
+    def initial_hidden(self, dtype) -> jax.Array:
+        """The hidden states at the start of an episode (the vehicle at rest)."""
+        return lm.hover_hidden(self.params, dtype) if self.loop else jnp.zeros((0,), dtype)
+
+    def next_hidden(self, sensed: QuadState, hidden: jax.Array, u: jax.Array, seconds: float) -> jax.Array:
+        """The hidden states ``seconds`` after ``sensed`` under the applied input ``u``."""
+        if not self.loop:
+            return hidden
+        substeps = max(1, math.ceil(seconds / (self.cfg.dt_node / self.cfg.loop_substeps) - 1e-9))
+        return lm.propagate_hidden(self.params, sensed, hidden, u, seconds, substeps)
+
     def rollout(self, x0: QuadState, U: jax.Array) -> QuadState:
         """States at nodes 1..N (each leaf with a leading axis N) under the ZOH plan ``U``."""
-        cfg, params = self.cfg, self.params
 
         def step(x, u):
-            x = rk4_step(params, x, u, cfg.dt_node, substeps=cfg.node_substeps)
+            x = self.node_step(x, u)
             return x, x
 
         return jax.lax.scan(step, x0, U)[1]
@@ -261,13 +290,13 @@ class NMPC:
         and the sensitivities ``S_{i+1} = A_i S_i + [0 … B_i … 0]`` (``S_i = ∂x_i/∂U``) in one
         short scan: the same J as ``jacfwd`` through the rollout, without carrying 4N tangents
         through the N sequential RK4 steps (faster on CPU: benchmarks/nmpc_speed.py)."""
-        cfg, params, n = self.cfg, self.params, self.cfg.horizon
+        n = self.cfg.horizon
         xf0, unravel = ravel_pytree(x0)
         nx = xf0.shape[0]
         sqrt_q = jnp.asarray(self._sqrt_q, U.dtype)
 
         def f(xf, u):
-            return ravel_pytree(rk4_step(params, unravel(xf), u, cfg.dt_node, substeps=cfg.node_substeps))[0]
+            return ravel_pytree(self.node_step(unravel(xf), u))[0]
 
         def att_residual(q, q_ref):
             dq = quat_mul(quat_conj(q_ref), q)
@@ -275,7 +304,7 @@ class NMPC:
 
         xs = jax.lax.scan(lambda x, u: (f(x, u),) * 2, xf0, U)[1]  # (N, nx), nodes 1..N
         A, B = jax.vmap(jax.jacfwd(f, argnums=(0, 1)))(jnp.concatenate([xf0[None], xs[:-1]]), U)
-        # ravel_pytree(QuadState) is [p, v, q, w]: ∂r/∂(p, v) is diagonal, ∂r/∂q is Cq
+        # ravel_pytree(QuadState) is [p, v, q, w, …]: ∂r/∂(p, v) is diagonal, ∂r/∂q is Cq
         q_ref = ref.quat
         r = jnp.concatenate([(xs[:, :3] - ref.pos) * sqrt_q[:3], (xs[:, 3:6] - ref.vel) * sqrt_q[3:6],
                              jax.vmap(att_residual)(xs[:, 6:10], q_ref)], -1)  # fmt: skip
@@ -358,22 +387,25 @@ def nmpc_controller(env_config, cfg: NMPCConfig | None = None):
         ps = state.pipeline_state
         ref = mpc.references(ps.track, ps.k)
         zero = jnp.zeros((), jnp.int32)
-        return NMPCCarry(plan=ref.u, age=zero, solves=zero, cost=jnp.zeros((), ref.u.dtype))
+        hidden = mpc.initial_hidden(ref.u.dtype)
+        return NMPCCarry(plan=ref.u, age=zero, solves=zero, cost=jnp.zeros((), ref.u.dtype), hidden=hidden)
 
     def act(carry: NMPCCarry, state):
         ps = state.pipeline_state
+        sensed = rigid_body(ps.quad)
 
         def resolve(c: NMPCCarry) -> NMPCCarry:
             ref = mpc.references(ps.track, ps.k)
             warm = mpc.shift(c.plan, c.age.astype(c.plan.dtype) * control_dt)
             iters = jnp.where(c.solves == 0, cfg.sqp_iters_first, cfg.sqp_iters)
-            U, J = mpc.solve(rigid_body(ps.quad), ref, warm, iters)
-            return NMPCCarry(plan=U, age=jnp.zeros_like(c.age), solves=c.solves + 1, cost=J)
+            U, J = mpc.solve(mpc.model_state(sensed, c.hidden), ref, warm, iters)
+            return c.replace(plan=U, age=jnp.zeros_like(c.age), solves=c.solves + 1, cost=J)
 
         due = (carry.solves == 0) | (carry.age >= cfg.solve_every)
         carry = jax.lax.cond(due, resolve, lambda c: c, carry)
         u = mpc.plan_input(carry.plan, carry.age.astype(carry.plan.dtype) * control_dt)
         a = control_to_action(env_config, u).astype(state.obs.dtype)
-        return a, carry.replace(age=carry.age + 1)
+        hidden = mpc.next_hidden(sensed, carry.hidden, u, control_dt)
+        return a, carry.replace(age=carry.age + 1, hidden=hidden)
 
     return Controller(init=init, act=act)
