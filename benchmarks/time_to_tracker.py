@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 import statistics
@@ -127,6 +128,24 @@ def stage_row(first_line_s: float, stages: dict, upto: int) -> dict:
     return row
 
 
+def speed_probe() -> dict:
+    """How fast this machine runs right now, so that runs on a shared VM, whose speed varies
+    from hour to hour, can be told apart: seconds of a fixed pure-Python loop and of a numpy
+    sort of 4M doubles (memory traffic), best of 5 each."""
+    import numpy as np
+
+    x = np.random.default_rng(0).random(4_000_000)
+    out = {"python_s": math.inf, "numpy_sort_s": math.inf}
+    for _ in range(5):
+        t = time.perf_counter()
+        sum(i * i % 7 for i in range(1_000_000))
+        t1 = time.perf_counter()
+        np.sort(x)
+        t2 = time.perf_counter()
+        out = {"python_s": min(out["python_s"], t1 - t), "numpy_sort_s": min(out["numpy_sort_s"], t2 - t1)}
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1, one process each")
@@ -137,14 +156,19 @@ def main(argv=None) -> int:
         ap.error(f"--seeds must be >= 1, got {args.seeds}")
     extra = ["--total-transitions", "20000", "--epochs", "2"] if args.quick else []
     seeds = range(1 if args.quick else args.seeds)
+    probe = [speed_probe()]
     with tempfile.TemporaryDirectory() as tmp:
         rows = [run_seed(s, extra, tmp, os.path.join(tmp, f"xla-s{s}")) for s in seeds]
         rows.append(run_seed(0, extra, tmp, os.path.join(tmp, "xla-s0"), warm=True))
+    probe.append(speed_probe())
 
     def f(x, spec="{:.0f}"):
         return "never" if x is None else spec.format(x)
 
     print(f"machine: {_peers.cpu_model()}, {os.cpu_count()} cpus; paper T-TD3 {PAPER}")
+    print("speed probe before / after the runs (the same VM's speed varies by up to 1.5x from hour to "
+          f"hour): Python loop {probe[0]['python_s']:.3f} / {probe[1]['python_s']:.3f} s, numpy sort "
+          f"{probe[0]['numpy_sort_s']:.3f} / {probe[1]['numpy_sort_s']:.3f} s")  # fmt: skip
     print(
         f"{'seed':>4} {'cache':>5} {'beats paper at s':>16} {'first epoch s':>13} {'total s':>7} "
         f"{'best Spiral (at s)':>19} {'best LOS (at s)':>16} {'final Spiral / LOS':>19}"
@@ -182,7 +206,7 @@ def main(argv=None) -> int:
     )
     if args.out:
         rec = _peers.machine_record(argv, with_jax=False)  # the runs are subprocesses
-        rec.update(quick=args.quick, rows=rows)
+        rec.update(quick=args.quick, speed_probe_s=probe, rows=rows)
         _peers.append_record(args.out, rec)
     return 0
 
