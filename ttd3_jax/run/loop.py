@@ -264,8 +264,9 @@ def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> 
             mngr = ckpt.manager(run_dir, asynchronous=True)  # (imports orbax while the programs compile)
             init_c, t = pending.wait("init", t)
             ts, start, csv_log, t = _fresh(r, mngr=mngr, init_c=init_c, keys=keys, hp=hp, t=t)
-        epoch_c, t = pending.wait("epoch", t) if "epoch" in programs else (None, t)  # (a checkpointed last
-        eval_c = pending.when_ready("eval")  # epoch needs only eval, waited for when first called)
+        # (a checkpointed last epoch needs only eval, whose compile is waited for when first called)
+        epoch_c, t = pending.wait("epoch", t) if "epoch" in programs else (None, t)
+        eval_c = pending.when_ready("eval")
         lowered = sum(getattr(stages, f"{n}_lower_s") for n in pending.names)
         log(f"compiled {' + '.join(pending.names)} in {lowered + stages.compile_s:.1f} s (trace "
             f"{lowered:.1f} s, then compile {stages.compile_s:.1f} s, at once); "
@@ -370,7 +371,7 @@ class Pending:
         """``(executable, the time now)``, adding the wait to ``stages.compile_s``."""
         exe = self.futures[name].result()
         waited, now = _since(t)
-        self.stages.compile_s = (self.stages.compile_s or 0.0) + waited
+        self.stages.compile_s += waited
         return exe, now
 
     def when_ready(self, name: str) -> Callable:
