@@ -29,7 +29,18 @@ import numpy as np
 
 TRACKS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "tracks", "protocol")
 # the parts this script builds, and the preview's (``preview_{t:g}s``, one per time of preview_s)
-PARTS = ("p", "v", "q", "p_ahead", "p_ahead_error", "error", "omega", "last_action", "error_integral")
+PARTS = (
+    "p",
+    "v",
+    "q",
+    "p_ahead",
+    "p_ahead_error",
+    "error",
+    "omega",
+    "last_action",
+    "error_integral",
+    "action_history",
+)
 PREVIEW = "preview_"
 RATE_MODELS = ("instant", "first_order")
 
@@ -109,12 +120,16 @@ class Memory:
         self.last_action = np.zeros(4, dtype)
         self.error_integral = np.zeros(3, dtype)
         self.ref_int = np.zeros(3, dtype)
+        self.keep = np.asarray(self.spec.get("action_history_keep", []), dtype)[:, None]
+        self.action_history = np.zeros((len(self.keep), 4), dtype)
 
     def update(self, action: np.ndarray, p: np.ndarray, p_d: np.ndarray) -> None:
         """After a control step: ``action`` the one it applied (clipped to [-1, 1]), ``p`` the
         measured position (m) and ``p_d`` the reference at the step's end."""
         f = self.error_integral.dtype.type
         self.last_action = np.clip(action, -1.0, 1.0).astype(self.last_action.dtype)
+        f1 = self.keep.dtype.type(1)
+        self.action_history = self.keep * self.action_history + (f1 - self.keep) * self.last_action
         if not self.spec:
             return
         e = np.asarray(p_d, self.error_integral.dtype) - np.asarray(p, self.error_integral.dtype)
@@ -150,10 +165,18 @@ def observe(meta: dict, x: np.ndarray, ref: np.ndarray, k: int, memory: Memory |
     p_err = reference(ref, k + 1) if "k+1" in spec["error_reference"] else reference(ref, k)
     parts = {"p": p - origin, "v": v, "q": q, "p_ahead": ahead - origin, "p_ahead_error": ahead - p,
              "error": [np.linalg.norm(p_err - p)], "omega": w, "last_action": memory.last_action,
-             "error_integral": memory.error_integral}  # fmt: skip
+             "error_integral": memory.error_integral,
+             "action_history": memory.action_history.ravel()}  # fmt: skip
     dt = meta["evaluation_protocol"]["physics_dt_s"]
     for t in spec.get("preview_s", []):  # the reference t s after p_ahead, relative to it
         parts[f"{PREVIEW}{t:g}s"] = reference(ref, k + look + round(t / dt)) - ahead
+    if spec.get("body_frame"):  # world -> body: R(q)^T x
+        s, a, b, c = (float(e) for e in q)  # qw, qx, qy, qz
+        rot = np.array([[1 - 2 * (b * b + c * c), 2 * (a * b - s * c), 2 * (a * c + s * b)],
+                        [2 * (a * b + s * c), 1 - 2 * (a * a + c * c), 2 * (b * c - s * a)],
+                        [2 * (a * c - s * b), 2 * (b * c + s * a), 1 - 2 * (a * a + b * b)]])  # fmt: skip
+        for name in spec["body_frame"]:
+            parts[name] = np.asarray(parts[name], np.float64) @ rot
     read = [part["name"] for part in spec["parts"] if not part.get("critic_only", False)]
     return np.concatenate([np.asarray(parts[name], x.dtype) for name in read])
 

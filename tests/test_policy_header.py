@@ -229,6 +229,7 @@ STATEFUL = {  # memory, preview and reference integral (robust, cf2: omega); and
     # world frame, the error to p_d,k+1, q as integrated, a reference integral at its limit
     "robust": lambda: sp.preset("robust").task,
     "cf2": lambda: sp.preset("cf2").task,
+    "cf2_history_body": lambda: sp.preset("cf2").task.replace(action_history_s=(0.05, 0.2), body_frame=True),
     "two_vehicles_world": lambda: make_config(
         "practical", hover_centered_thrust=True, vehicles=TWO, obs_memory=True, preview_s=(0.2,),
         obs_frame="world", err_ref="next", canonical_q_obs=False, ref_integral_gain=3.0,
@@ -245,12 +246,15 @@ def test_ttd3_step_builds_the_envs_observation_and_keeps_its_state_step_after_st
     api = pe.c_api(flown)
     policy = tracking_policy(flown)
     header = ch.c_header(policy, "test", vehicles, api)
-    assert api["state"] == ["last_action", "error_integral", "ref_int"]
-    assert ("omega" in api["parts"]) == (name == "cf2") and "float ref_int[3];" in header
+    history = ["action_history"] if cfg.observation.action_history_s else []
+    assert api["state"] == ["last_action", "error_integral", "ref_int", *history]
+    assert ("omega" in api["parts"]) == name.startswith("cf2") and "float ref_int[3];" in header
     state = fly_against_c(flown, api, header, lambda o: pe.forward(policy, o), tmp_path,
                           vehicle=TWO[1] if vehicles else None)  # fmt: skip
     ps = state.pipeline_state
     assert np.all(np.asarray(ps.err_int) != 0) and np.all(np.isfinite(np.asarray(ps.quad.p)))
+    if history:  # it kept the history (the observation and the action checked it at every step)
+        assert "float action_history[8];" in header and np.all(np.asarray(ps.act_hist) != 0)
     o, ref_int = cfg.observation, np.asarray(ps.ref_int)
     assert np.any(ref_int != 0)  # it integrated within the band; the last config's shift at its limit
     assert np.any(o.ref_integral_gain * np.abs(ref_int) > o.ref_integral_limit) == (

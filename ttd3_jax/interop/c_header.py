@@ -109,15 +109,23 @@ def c_vehicles(v: dict) -> list[str]:
 # What a policy keeps between control steps (policy.json: c_api): its size and meaning in policy.h
 C_STATE = dict(last_action=(4, "the action of the last control step, clipped to [-1, 1]"),
                error_integral=(3, "leaky integral of p_d,k - p (m s)"),
-               ref_int=(3, "integral of p_d,k - p within the band (m s): shifts the reference"))  # fmt: skip
+               ref_int=(3, "integral of p_d,k - p within the band (m s): shifts the reference"),
+               action_history=(None, "leaky averages of the applied action, 4 per time constant"),
+               )  # fmt: skip
 # the observation parts ttd3_observe builds besides the preview (c_api refuses any other)
 C_PARTS = ("p", "v", "q", "p_ahead", "p_ahead_error", "error", "omega", "last_action", "error_integral",
-           "vehicle")  # fmt: skip
+           "action_history", "vehicle")  # fmt: skip
 
 
 C_HELPERS = """
 static inline float ttd3_clip(float x, float limit) {
   return x < -limit ? -limit : (x > limit ? limit : x);
+}
+static inline void ttd3_to_body(const float q[4], float *x) {  /* x = R(q)^T x, R body to world */
+  const float w = q[0], a = q[1], b = q[2], c = q[3], x0 = x[0], x1 = x[1], x2 = x[2];
+  x[0] = (1.0f - 2.0f * (b * b + c * c)) * x0 + 2.0f * (a * b + w * c) * x1 + 2.0f * (a * c - w * b) * x2;
+  x[1] = 2.0f * (a * b - w * c) * x0 + (1.0f - 2.0f * (a * a + c * c)) * x1 + 2.0f * (b * c + w * a) * x2;
+  x[2] = 2.0f * (a * c + w * b) * x0 + 2.0f * (b * c - w * a) * x1 + (1.0f - 2.0f * (a * a + b * b)) * x2;
 }
 static inline float ttd3_distance(const float *a, const float *b) {
   const float dx = a[0] - b[0], dy = a[1] - b[1], dz = a[2] - b[2];
@@ -174,7 +182,7 @@ def _c_entry(name: str, api: dict) -> str:
     return dict(p="pos[i]" + now, v="v[i]", q=q, p_ahead="ahead[i]" + now, p_ahead_error="ahead[i] - pos[i]",
                 error="ttd3_distance(ref + 3 * TTD3_REF_ERROR, pos)", omega="omega[i]",
                 last_action="s->last_action[i]", error_integral="s->error_integral[i]",
-                vehicle="s->vehicle[i]")[name]  # fmt: skip
+                action_history="s->action_history[i]", vehicle="s->vehicle[i]")[name]  # fmt: skip
 
 
 def c_state(api: dict, vehicles: dict | None) -> list[str]:
@@ -197,9 +205,15 @@ def c_state(api: dict, vehicles: dict | None) -> list[str]:
         out += [
             f"#define TTD3_REF_INT_{k.upper()} {c_float(ri[k])}" for k in ("gain_per_s", "band_m", "limit_m")
         ]
+    hist = mem.get("action_history_keep") if mem else None
+    if hist:
+        keeps = ", ".join(map(c_float, hist))
+        out += [f"#define TTD3_ACTION_HISTORY_SIZE {4 * len(hist)}",
+                f"static const float ttd3_action_history_keep[{len(hist)}] = {{{keeps}}};"]  # fmt: skip
+    size = {n: C_STATE[n][0] or api["parts"][n] for n in keep}
     # the struct (C99 needs a member) and what ttd3_reset sets
-    members = [f"  float {n}[{C_STATE[n][0]}];  /* {C_STATE[n][1]} */" for n in keep]
-    reset = [f"  for (i = 0; i < {C_STATE[n][0]}; ++i) s->{n}[i] = 0.0f;" for n in keep]
+    members = [f"  float {n}[{size[n]}];  /* {C_STATE[n][1]} */" for n in keep]
+    reset = [f"  for (i = 0; i < {size[n]}; ++i) s->{n}[i] = 0.0f;" for n in keep]
     if vehicles:
         first = f"TTD3_VEHICLE_{next(iter(vehicles['per_vehicle'])).upper()}"
         members.append(
@@ -230,7 +244,20 @@ def c_state(api: dict, vehicles: dict | None) -> list[str]:
         loop = f"obs[{at}]" if size == 1 else f"for (i = 0; i < {size}; ++i) {dst}"
         out.append(f"  {loop} = {entry};  /* {name} */")
         at += size
+    at = 0
+    for name, size in api["parts"].items():
+        if name in api.get("body_frame", []):
+            out.append(f"  ttd3_to_body(q, obs + {at});  /* {name}, into the body frame */")
+        at += size
     remember = "  int i;\n  for (i = 0; i < 4; ++i) s->last_action[i] = ttd3_clip(action[i], 1.0f);"
+    if hist:
+        remember += (
+            "\n  for (i = 0; i < TTD3_ACTION_HISTORY_SIZE; ++i) {"
+            "\n    const float keep = ttd3_action_history_keep[i / 4];"
+            "\n    s->action_history[i] = keep * s->action_history[i]"
+            " + (1.0f - keep) * s->last_action[i % 4];"
+            "\n  }"
+        )
     return (
         out + (C_STEP % (remember if "last_action" in keep else "  (void)s;\n  (void)action;")).splitlines()
     )

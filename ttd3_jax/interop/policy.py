@@ -104,6 +104,11 @@ def onnx_model(p: Policy, name: str = "ttd3_policy"):
     return model
 
 
+def _body_frame(cfg: EnvConfig) -> list[str]:
+    """The parts rotated into the body frame (``observation.body_frame``; none without it)."""
+    return list(observation.body_frame_parts(observation.layout(cfg))) if cfg.observation.body_frame else []
+
+
 def c_api(cfg: EnvConfig) -> dict:
     """``policy.json``'s ``c_api``: how firmware flies ``policy.h`` (``call_order``, one call per
     control step) and what the header's ``ttd3_observe`` builds from what (:func:`c_state` writes
@@ -122,8 +127,9 @@ def c_api(cfg: EnvConfig) -> dict:
     refs.update(
         {name: o.lookahead_k + round(t / cfg.dt) for name, t in zip(previews, o.preview_s, strict=True)}
     )
-    state = [n for n, on in (("last_action", o.obs_memory), ("error_integral", o.obs_memory),
-                             ("ref_int", o.ref_integral_gain > 0)) if on]  # fmt: skip
+    kept = (("last_action", o.obs_memory), ("error_integral", o.obs_memory),
+            ("ref_int", o.ref_integral_gain > 0), ("action_history", bool(o.action_history_s)))  # fmt: skip
+    state = [n for n, on in kept if on]
     m, ri = memory_spec(cfg), reference_integral_spec(cfg)
     return dict(
         call_order=c_call_order(cfg, state, any(part.name == "omega" for part in parts)),
@@ -133,9 +139,10 @@ def c_api(cfg: EnvConfig) -> dict:
         "physics step k + the i-th value, k the control step's physics step (ttd3_ref_steps)",
         parts={part.name: part.size for part in parts},
         frame=o.obs_frame,
+        body_frame=_body_frame(cfg),
         error_reference="now" if o.err_ref == "current" else ("next" if "next" in refs else "ahead"),
         canonical_q=o.canonical_q_obs,
-        memory={k: m[k] for k in ("leak", "dt_s")} if o.obs_memory else None,
+        memory={k: m[k] for k in ("leak", "dt_s", "action_history_keep") if k in m} if o.obs_memory else None,
         reference_integral={k: ri[k] for k in ("gain_per_s", "band_m", "limit_m")}
         if o.ref_integral_gain > 0
         else None,
@@ -273,13 +280,16 @@ def observation_spec(cfg: EnvConfig, obs_size: int) -> dict:
         if cfg.observation.preview_s
         else None,  # fmt: skip
         preview_s=list(cfg.observation.preview_s),
+        body_frame=_body_frame(cfg),
+        body_frame_meaning="these parts, built as above, then rotated into the body frame: x_body = "
+        "R(q)^T x, R(q) the measured attitude's rotation matrix (body to world)",
     )
 
 
 def memory_spec(cfg: EnvConfig) -> dict:
     """How a deployment keeps the observation's memory parts (``obs_memory``) from step to step."""
     leak = math.exp(-cfg.control_dt / cfg.observation.memory_tau)
-    return dict(
+    out = dict(
         reset="last_action = 0 (4), error_integral = 0 (3) at the start of a flight",
         last_action="after each control step: the action the policy output (clipped to [-1, 1])",
         error_integral=(
@@ -291,6 +301,18 @@ def memory_spec(cfg: EnvConfig) -> dict:
         dt_s=cfg.control_dt,
         reference_integral=reference_integral_spec(cfg) if cfg.observation.ref_integral_gain > 0 else None,
     )
+    if cfg.observation.action_history_s:
+        keep = [math.exp(-cfg.control_dt / t) for t in cfg.observation.action_history_s]
+        out.update(
+            action_history=(
+                "after each control step, for each time constant tau_j (s) of "
+                f"{list(cfg.observation.action_history_s)}: action_history[j] = keep_j * action_history[j] "
+                "+ (1 - keep_j) * a (4 each, a the applied action clipped to [-1, 1], after last_action), "
+                f"keep_j = exp(-dt / tau_j) = {keep}; zeros at the start of a flight"
+            ),
+            action_history_keep=keep,
+        )
+    return out
 
 
 def reference_integral_spec(cfg: EnvConfig) -> dict:

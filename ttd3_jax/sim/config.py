@@ -105,6 +105,12 @@ class ObservationConfig:
     ref_integral_gain: float = 0.0  # 1/s
     ref_integral_band: Annotated[float, Suppress] = 0.005  # m
     ref_integral_limit: Annotated[float, Suppress] = 0.01  # m
+    # leaky averages of the applied action, one per time constant (s): a short history of the
+    # commands, from which the policy can tell what the rotors and rate loop are doing now
+    action_history_s: tuple[float, ...] = ()
+    # every 3-vector part but omega (positions, velocity, error integral, preview) rotated into the
+    # body frame (x_body = R(q)ᵀ x_world, q as measured): the reference as the vehicle sees it (DATT)
+    body_frame: bool = False
 
     def __post_init__(self):
         f = lambda name: _where("observation", name)  # noqa: E731
@@ -113,6 +119,12 @@ class ObservationConfig:
         if not (ok and list(t) == sorted(set(t))):
             checks.fail(f("preview_s"), f"increasing times in (0, {PREVIEW_MAX_S:g}] s", t)
         checks.number(f("memory_tau"), self.memory_tau, 0, lo_open=True)
+        h = self.action_history_s
+        ok = isinstance(h, tuple) and all(checks.is_number(x) and 0 < x <= PREVIEW_MAX_S for x in h)
+        if not (ok and list(h) == sorted(set(h))):
+            checks.fail(f("action_history_s"), f"increasing time constants in (0, {PREVIEW_MAX_S:g}] s", h)
+        if h and self.obs_memory is not True:
+            checks.fail(f("action_history_s"), "() without obs_memory (which keeps the last action)", h)
         checks.number(f("ref_integral_gain"), self.ref_integral_gain, 0, 100, unit=" 1/s")
         for name in ("ref_integral_band", "ref_integral_limit"):
             checks.number(f(name), getattr(self, name), 0, 1, lo_open=True, unit=" m")
@@ -125,7 +137,7 @@ class ObservationConfig:
         checks.integer(f("lookahead_k"), self.lookahead_k, 1)
         checks.one_of(f("err_ref"), self.err_ref, ERR_REFS)
         checks.one_of(f("obs_frame"), self.obs_frame, OBS_FRAMES)
-        for name in ("canonical_q_obs", "obs_memory", "obs_privileged"):
+        for name in ("canonical_q_obs", "obs_memory", "obs_privileged", "body_frame"):
             checks.boolean(f(name), getattr(self, name))
 
 

@@ -46,12 +46,15 @@ from ttd3_jax.sim.dynamics import (
     model_state,
     quat_from_axis_angle,
     quat_mul,
+    quat_to_rotmat,
     rk4_step,
     yaw_of,
 )
 from ttd3_jax.sim.env_api import Env, State
 from ttd3_jax.sim.env_state import (
     DelayedTrackingState,
+    HistoryMemoryState,
+    HistoryRandomizedState,
     IntegralMemoryState,
     IntegralRandomizedState,
     MemoryTrackingState,
@@ -323,6 +326,9 @@ class TrackingEnv(Env):
         if c.observation.ref_integral_gain > 0:  # (obs_memory: one of the two above)
             kind = IntegralRandomizedState if self._randomized else IntegralMemoryState
             ps = kind(**vars(ps), ref_int=jnp.zeros(3, f))
+        if c.observation.action_history_s:
+            kind = HistoryRandomizedState if self._randomized else HistoryMemoryState
+            ps = kind(**vars(ps), act_hist=jnp.zeros((len(c.observation.action_history_s), 4), f))
         obs, ps = self.observe(ps)
         zero = jnp.zeros((), f)
         metrics = {"tracking_error": zero, "energy": zero, "energy_sq": zero, "crashed": zero}
@@ -395,6 +401,10 @@ class TrackingEnv(Env):
             ps = ps.replace(last_action=a)
         if c.observation.obs_memory:
             ps = ps.replace(last_action=a)
+        if c.observation.action_history_s:
+            keep = [[math.exp(-c.control_dt / t)] for t in c.observation.action_history_s]
+            keep = jnp.asarray(keep, a.dtype)
+            ps = ps.replace(act_hist=keep * ps.act_hist + (1.0 - keep) * a)
         obs, ps = self.observe(ps, p_ref, integrate=True)
         f = reward.dtype
         a_norm2 = jnp.sum(a * a)
@@ -531,6 +541,8 @@ class TrackingEnv(Env):
             parts["omega"] = x.w
         if c.observation.obs_memory:
             parts.update(last_action=ps.last_action, error_integral=ps.err_int)
+        if c.observation.action_history_s:
+            parts["action_history"] = ps.act_hist.reshape(-1)
         if self.layout.has("vehicle"):  # the known vehicle (randomization.vehicles)
             parts["vehicle"] = vm.descriptor(ps.plant.nominal)
 
@@ -539,6 +551,10 @@ class TrackingEnv(Env):
 
         for t in c.observation.preview_s:  # the actor's preview of the reference
             parts[observation.preview_name(t)] = ahead(t)
+        if c.observation.body_frame:  # world -> body: R(q)ᵀ x
+            rot = quat_to_rotmat(q)
+            for name in observation.body_frame_parts(self.layout):
+                parts[name] = parts[name] @ rot
         if c.observation.obs_privileged:
             wind_mean = self._randomized and c.randomization.wind_mean > 0
             parts["wind"] = ps.wind + ps.plant.wind_mean if wind_mean else ps.wind

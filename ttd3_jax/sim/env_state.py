@@ -90,3 +90,13 @@ def last_applied_action(cfg: EnvConfig, ps: TrackingState, a: jax.Array) -> jax.
     if cfg.disturbances.action_delay:
         return ps.prev_action
     return a
+
+
+@struct.dataclass
+class HistoryMemoryState(IntegralMemoryState):
+    act_hist: jax.Array  # (n, 4) leaky averages of the applied action (observation.action_history_s)
+
+
+@struct.dataclass
+class HistoryRandomizedState(IntegralRandomizedState):
+    act_hist: jax.Array  # (n, 4) as HistoryMemoryState's

@@ -92,6 +92,13 @@ class ObsLayout:
                      critic_only=p.critic_only) for p in self.parts]  # fmt: skip
 
 
+def body_frame_parts(lay: ObsLayout) -> tuple[str, ...]:
+    """The parts ``observation.body_frame`` rotates into the body frame: every 3-vector the actor
+    reads but omega (already in it) and the vehicle descriptor."""
+    turn = [p for p in lay.parts if p.size == 3 and p.name not in ("omega", "vehicle") and not p.critic_only]
+    return tuple(p.name for p in turn)
+
+
 def preview_name(t: float) -> str:
     """The part of the actor's preview point ``t`` s after p_d,k+L (``observation.preview_s``)."""
     return f"preview_{t:g}s"
@@ -126,6 +133,11 @@ def layout(cfg: EnvConfig) -> ObsLayout:
                           "the action the last step applied (zeros at reset)"))  # fmt: skip
         parts.append(Part("error_integral", _vec("error_integral"),
                           "leaky integral of p_d - p (m s), leak time constant memory_tau"))  # fmt: skip
+    if cfg.observation.action_history_s:
+        times = cfg.observation.action_history_s
+        names = tuple(f"action_history_{t:g}s.{i}" for t in times for i in range(4))
+        meaning = "leaky averages of the applied action, 4 per time constant action_history_s"
+        parts.append(Part("action_history", names, meaning))
     if cfg.randomization.vehicles:  # the known vehicle of one policy for several (sim.vehicle_mix)
         parts.append(Part("vehicle", tuple(f"vehicle.{e}" for e in vm.DESCRIPTOR), vm.DESCRIPTOR_MEANING))
     for t in cfg.observation.preview_s:
