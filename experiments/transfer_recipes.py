@@ -5,9 +5,10 @@ firmware's rate loop (``experiments/transfer_crazyflow.py``, in the crazyflow ve
 Per variant and seed: Σ‖e‖ in our simulator on Spiral-RT and LOS-RT (nominal), and on
 crazyflow the crashes, the largest ratio to our simulator and how many tracks beat crazyflow's
 Mellinger controller, over Spiral-RT, LOS-RT seeds 0-4 and the 0.5 m circle (issue 50's
-criteria).  Variants (``VARIANTS``): the preset (a heading cost and an action-rate cost);
-either cost alone; neither; neither and no memory (no last action, error integral or integral
-action: no identification in context); without the inner loop in training (``robust``,
+criteria).  Variants (``VARIANTS``): the preset (a heading cost, an action-rate cost, memory
+and the action history); without the action history; with the observation in the body frame;
+without memory (no last action, error integral, integral action or history, so no action-rate
+cost either); either cost alone; neither; without the inner loop in training (``robust``,
 instant rates).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
@@ -35,15 +36,17 @@ ROOT = os.path.dirname(HERE)
 TRACKS = ("spiral_rt", *(f"los_rt_seed{s:02d}" for s in range(5)), "circle_r0.5")
 # variant -> (description, preset, EnvConfig changes by field name)
 VARIANTS = {
-    "cf2": ("the cf2 preset (heading 0.1 ψ², action rate 1.0 ||Δa||²)", "cf2", {}),
+    "cf2": ("the cf2 preset (heading 0.1 ψ², action rate 1.0 ||Δa||², memory, action history)", "cf2", {}),
+    "no_history": ("without the action history", "cf2", {"action_history_s": ()}),
+    "body_frame": ("the observation in the body frame", "cf2", {"body_frame": True}),
+    "no_memory": (
+        "no memory: no last action, error integral, integral action or history (so no action-rate cost)",
+        "cf2",
+        {"rho_rate": 0.0, "obs_memory": False, "ref_integral_gain": 0.0, "action_history_s": ()},
+    ),
     "heading_only": ("heading cost only", "cf2", {"rho_rate": 0.0}),
     "rate_only": ("action-rate cost only", "cf2", {"rho_yaw": 0.0}),
     "neither": ("neither cost", "cf2", {"rho_yaw": 0.0, "rho_rate": 0.0}),
-    "no_memory": (
-        "neither cost, no memory or integral action",
-        "cf2",
-        {"rho_yaw": 0.0, "rho_rate": 0.0, "obs_memory": False, "ref_integral_gain": 0.0},
-    ),
     "instant": ("trained with instant rates (robust)", "robust", {}),
 }
 QUICK = dict(total_transitions=30_000, epochs=2)  # --quick's budget
@@ -60,8 +63,8 @@ def sh(cmd: list[str], log: str) -> None:
 
 def made_with(name: str, quick: bool) -> dict:
     """What variant ``name`` trains: its preset, task changes and budget (``flags.json``)."""
-    _, preset, changes = VARIANTS[name]
-    return {"preset": preset, "task": changes, "budget": QUICK if quick else {}}
+    _, preset, changes = VARIANTS[name]  # as flags.json records it (JSON: tuples are lists)
+    return json.loads(json.dumps({"preset": preset, "task": changes, "budget": QUICK if quick else {}}))
 
 
 def train(made: dict, out: str) -> None:
@@ -70,7 +73,12 @@ def train(made: dict, out: str) -> None:
     from ttd3_jax.run import spec as sp
 
     spec = sp.preset(made["preset"], **made["budget"])
-    loop.run(sp.replace(spec, task=spec.task.replace(**made["task"])), out)
+    loop.run(sp.replace(spec, task=spec.task.replace(**task_changes(made))), out)
+
+
+def task_changes(made: dict) -> dict:
+    """The EnvConfig changes of ``made`` (JSON's lists back to tuples)."""
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in made["task"].items()}
 
 
 def run_variant(name: str, out: str, cf_python: str, quick: bool) -> dict:
@@ -166,6 +174,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: {VARIANTS[name][0]} ...", flush=True)
         summaries.append(run_variant(name, a.out, a.crazyflow_python, a.quick))
         print(table(summaries[-1:]), flush=True)
+    # the table of every variant measured under OUT, this call's and earlier ones'
+    found = [os.path.join(a.out, n, "summary.json") for n in VARIANTS]
+    summaries = [json.load(open(f)) for f in found if os.path.isfile(f)]
     text = table(summaries)
     open(os.path.join(a.out, "table.md"), "w").write(text + "\n")
     json.dump(summaries, open(os.path.join(a.out, "recipes.json"), "w"), indent=2)

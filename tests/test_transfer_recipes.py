@@ -34,7 +34,7 @@ def test_every_variant_is_the_preset_plus_valid_task_changes():
     for name in tr.VARIANTS:
         made = tr.made_with(name, quick=True)
         spec = sp.preset(made["preset"], **made["budget"])
-        spec.task.replace(**made["task"])  # validated: a bad change raises here
+        spec.task.replace(**tr.task_changes(made))  # validated: a bad change raises here
 
 
 def test_a_folder_made_otherwise_is_refused_before_training(tmp_path):
