@@ -254,7 +254,8 @@ def test_ttd3_step_builds_the_envs_observation_and_keeps_its_state_step_after_st
     ps = state.pipeline_state
     assert np.all(np.asarray(ps.err_int) != 0) and np.all(np.isfinite(np.asarray(ps.quad.p)))
     if history:  # it kept the history (the observation and the action checked it at every step)
-        assert "float action_history[8];" in header and np.all(np.asarray(ps.act_hist) != 0)
+        size = 4 * len(cfg.observation.action_history_s)
+        assert f"float action_history[{size}];" in header and np.all(np.asarray(ps.act_hist) != 0)
     o, ref_int = cfg.observation, np.asarray(ps.ref_int)
     assert np.any(ref_int != 0)  # it integrated within the band; the last config's shift at its limit
     assert np.any(o.ref_integral_gain * np.abs(ref_int) > o.ref_integral_limit) == (
