@@ -119,7 +119,8 @@ def run_variant(name: str, out: str, cf_python: str, quick: bool) -> dict:
                 ],
                 log,
             )
-        seeds.append(seed_summary(json.load(open(flight))["tracks"]))
+        flown = json.load(open(flight))["tracks"]  # (a policy flown on more tracks: the only)
+        seeds.append(seed_summary({k: t for k, t in flown.items() if k in tracks}))
     summary = dict(variant=name, description=VARIANTS[name][0], made_with=made, run_dir=run_dir, seeds=seeds)
     json.dump(summary, open(os.path.join(folder, "summary.json"), "w"), indent=2)
     return summary
