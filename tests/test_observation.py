@@ -84,6 +84,65 @@ def test_the_error_integral_integrates_the_observed_position_as_policy_json_says
         np.testing.assert_array_equal(np.asarray(s.obs[lay.slice("last_action")]), np.asarray(a))
 
 
+@pytest.mark.parametrize(
+    "extra", [{}, {"ref_integral_gain": 3.0}, {"mass": (0.9, 1.1)}], ids=["memory", "integral", "randomised"]
+)
+def test_the_action_history_is_the_leaky_average_policy_json_gives(extra):
+    """observation.action_history_s: after each control step h_j = keep_j h_j + (1 - keep_j) a with
+    policy.json's keep_j, from zeros at reset; with or without integral action or randomisation."""
+    from ttd3_jax.interop.policy import memory_spec
+
+    cfg = make_config("practical", obs_memory=True, action_history_s=(0.05, 0.2), **extra)
+    env, lay = TrackingEnv(cfg), observation.layout(cfg)
+    keep = np.asarray(memory_spec(cfg)["action_history_keep"], np.float32)[:, None]
+    assert np.allclose(keep[:, 0], np.exp(-cfg.control_dt / np.array([0.05, 0.2])))
+    s, want = env.reset(jax.random.PRNGKey(1)), np.zeros((2, 4), np.float32)
+    np.testing.assert_array_equal(np.asarray(s.obs[lay.slice("action_history")]), want.ravel())
+    for a in ([0.3, -0.2, 0.1, 0.0], [-0.1, 0.4, 0.0, 0.2], [0.0, 0.0, -0.3, 0.1]):
+        s = env.step(s, jnp.asarray(a))
+        want = keep * want + (1 - keep) * np.asarray(a, np.float32)
+        np.testing.assert_allclose(np.asarray(s.obs[lay.slice("action_history")]), want.ravel(), atol=1e-7)
+
+
+@pytest.mark.parametrize("bad", [(0.1, 0.05), (0.0,), (3.0,)])
+def test_a_bad_action_history_is_refused_naming_the_field(bad):
+    with pytest.raises(ValueError, match=r"observation\.action_history_s must be increasing time constants"):
+        make_config("practical", obs_memory=True, action_history_s=bad)
+    with pytest.raises(ValueError, match=r"action_history_s must be \(\) without obs_memory"):
+        make_config("practical", action_history_s=(0.1,))
+
+
+def test_the_body_frame_rotates_every_vector_but_omega_into_the_body():
+    """observation.body_frame: each rotated part is R(q)ᵀ of the world-frame part (q as observed);
+    q, omega and the error norm are as they were."""
+    from ttd3_jax.sim.dynamics import quat_to_rotmat
+
+    base = make_config(
+        "practical", obs_memory=True, preview_s=(0.1,), quad=QuadParams.create(rate_model="first_order")
+    )
+    body = base.replace(body_frame=True)
+    lay = observation.layout(body)
+    assert observation.body_frame_parts(lay) == (
+        "p",
+        "v",
+        "p_ahead",
+        "p_ahead_error",
+        "error_integral",
+        "preview_0.1s",
+    )
+    world_env, body_env = TrackingEnv(base), TrackingEnv(body)
+    sw, sb = world_env.reset(jax.random.PRNGKey(2)), body_env.reset(jax.random.PRNGKey(2))
+    for a in ([0.3, 0.5, -0.4, 0.2], [0.1, -0.3, 0.6, 0.0]):
+        sw, sb = world_env.step(sw, jnp.asarray(a)), body_env.step(sb, jnp.asarray(a))
+    ow, ob = np.asarray(sw.obs), np.asarray(sb.obs)
+    rot = np.asarray(quat_to_rotmat(jnp.asarray(ow[lay.slice("q")])))
+    assert not np.allclose(rot, np.eye(3), atol=1e-2)  # it has turned
+    for part in lay.parts:
+        sl = lay.slice(part.name)
+        want = rot.T @ ow[sl] if part.name in observation.body_frame_parts(lay) else ow[sl]
+        np.testing.assert_allclose(ob[sl], want, rtol=1e-5, atol=1e-6, err_msg=part.name)
+
+
 def test_the_preview_shows_the_actor_the_reference_ahead_exactly():
     """observation.preview_s: for each time t, p_d(k + L + t/dt) − p_d(k + L), read by the actor
     (before the critics-only parts), on a known circle and after some steps."""

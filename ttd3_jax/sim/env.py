@@ -323,7 +323,8 @@ class TrackingEnv(Env):
             ps = MemoryTrackingState(**fields, last_action=jnp.zeros(4, f), err_int=jnp.zeros(3, f))
         else:
             ps = TrackingState(**fields)
-        if c.observation.ref_integral_gain > 0:  # (obs_memory: one of the two above)
+        # (obs_memory: one of the two above; the history's state holds ref_int, unread at gain 0)
+        if c.observation.ref_integral_gain > 0 or c.observation.action_history_s:
             kind = IntegralRandomizedState if self._randomized else IntegralMemoryState
             ps = kind(**vars(ps), ref_int=jnp.zeros(3, f))
         if c.observation.action_history_s:

@@ -94,9 +94,14 @@ def last_applied_action(cfg: EnvConfig, ps: TrackingState, a: jax.Array) -> jax.
 
 @struct.dataclass
 class HistoryMemoryState(IntegralMemoryState):
-    act_hist: jax.Array  # (n, 4) leaky averages of the applied action (observation.action_history_s)
+    """:class:`IntegralMemoryState` with ``observation.action_history_s`` (its ``ref_int`` stays
+    0 where ``ref_integral_gain`` is 0)."""
+
+    act_hist: jax.Array  # (n, 4) leaky averages of the applied action, one row per time constant
 
 
 @struct.dataclass
 class HistoryRandomizedState(IntegralRandomizedState):
+    """:class:`IntegralRandomizedState` with ``observation.action_history_s``."""
+
     act_hist: jax.Array  # (n, 4) as HistoryMemoryState's
