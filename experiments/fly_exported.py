@@ -170,13 +170,6 @@ def observe(meta: dict, x: np.ndarray, ref: np.ndarray, k: int, memory: Memory |
     dt = meta["evaluation_protocol"]["physics_dt_s"]
     for t in spec.get("preview_s", []):  # the reference t s after p_ahead, relative to it
         parts[f"{PREVIEW}{t:g}s"] = reference(ref, k + look + round(t / dt)) - ahead
-    if spec.get("body_frame"):  # world -> body: R(q)^T x
-        s, a, b, c = (float(e) for e in q)  # qw, qx, qy, qz
-        rot = np.array([[1 - 2 * (b * b + c * c), 2 * (a * b - s * c), 2 * (a * c + s * b)],
-                        [2 * (a * b + s * c), 1 - 2 * (a * a + c * c), 2 * (b * c - s * a)],
-                        [2 * (a * c - s * b), 2 * (b * c + s * a), 1 - 2 * (a * a + b * b)]])  # fmt: skip
-        for name in spec["body_frame"]:
-            parts[name] = np.asarray(parts[name], np.float64) @ rot
     read = [part["name"] for part in spec["parts"] if not part.get("critic_only", False)]
     return np.concatenate([np.asarray(parts[name], x.dtype) for name in read])
 

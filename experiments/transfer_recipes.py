@@ -6,10 +6,10 @@ Per variant and seed: Σ‖e‖ in our simulator on Spiral-RT and LOS-RT (nomina
 crazyflow the crashes, the largest ratio to our simulator and how many tracks beat crazyflow's
 Mellinger controller, over Spiral-RT, LOS-RT seeds 0-4 and the 0.5 m circle (issue 50's
 criteria).  Variants (``VARIANTS``): the preset (a heading cost, an action-rate cost, memory
-and the action history); without the action history; with the observation in the body frame;
-without memory (no last action, error integral, integral action or history, so no action-rate
-cost either); either cost alone; neither; without the inner loop in training (``robust``,
-instant rates).
+and the action history); without the action history; without memory (no last action, error
+integral, integral action or history, so no action-rate cost either); either cost alone;
+neither; without the inner loop in training (``robust``, instant rates).  The body-frame
+observation was a variant until it was measured and removed (926f0bb had it).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
     python experiments/transfer_recipes.py --out DIR --variants cf2 action_rate     # some
@@ -38,7 +38,6 @@ TRACKS = ("spiral_rt", *(f"los_rt_seed{s:02d}" for s in range(5)), "circle_r0.5"
 VARIANTS = {
     "cf2": ("the cf2 preset (heading 0.1 ψ², action rate 1.0 ||Δa||², memory, action history)", "cf2", {}),
     "no_history": ("without the action history", "cf2", {"action_history_s": ()}),
-    "body_frame": ("the observation in the body frame", "cf2", {"body_frame": True}),
     "no_memory": (
         "no memory: no last action, error integral, integral action or history (so no action-rate cost)",
         "cf2",

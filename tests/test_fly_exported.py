@@ -35,7 +35,6 @@ def test_every_part_is_rebuilt_from_policy_json_along_a_flight():
     rounding."""
     cfg = make_config("practical", hover_centered_thrust=True, obs_memory=True, preview_s=(0.1, 0.5, 1.0),
                       ref_integral_gain=3.0, ref_integral_band=0.2, action_history_s=(0.05, 0.2),
-                      body_frame=True,
                       ).for_eval("spiral_rt")  # fmt: skip
     cfg = cfg.replace(quad=cfg.vehicle.quad.replace(rate_model="first_order"))
     env = TrackingEnv(cfg)

@@ -112,37 +112,6 @@ def test_a_bad_action_history_is_refused_naming_the_field(bad):
         make_config("practical", action_history_s=(0.1,))
 
 
-def test_the_body_frame_rotates_every_vector_but_omega_into_the_body():
-    """observation.body_frame: each rotated part is R(q)ᵀ of the world-frame part (q as observed);
-    q, omega and the error norm are as they were."""
-    from ttd3_jax.sim.dynamics import quat_to_rotmat
-
-    base = make_config(
-        "practical", obs_memory=True, preview_s=(0.1,), quad=QuadParams.create(rate_model="first_order")
-    )
-    body = base.replace(body_frame=True)
-    lay = observation.layout(body)
-    assert observation.body_frame_parts(lay) == (
-        "p",
-        "v",
-        "p_ahead",
-        "p_ahead_error",
-        "error_integral",
-        "preview_0.1s",
-    )
-    world_env, body_env = TrackingEnv(base), TrackingEnv(body)
-    sw, sb = world_env.reset(jax.random.PRNGKey(2)), body_env.reset(jax.random.PRNGKey(2))
-    for a in ([0.3, 0.5, -0.4, 0.2], [0.1, -0.3, 0.6, 0.0]):
-        sw, sb = world_env.step(sw, jnp.asarray(a)), body_env.step(sb, jnp.asarray(a))
-    ow, ob = np.asarray(sw.obs), np.asarray(sb.obs)
-    rot = np.asarray(quat_to_rotmat(jnp.asarray(ow[lay.slice("q")])))
-    assert not np.allclose(rot, np.eye(3), atol=1e-2)  # it has turned
-    for part in lay.parts:
-        sl = lay.slice(part.name)
-        want = rot.T @ ow[sl] if part.name in observation.body_frame_parts(lay) else ow[sl]
-        np.testing.assert_allclose(ob[sl], want, rtol=1e-5, atol=1e-6, err_msg=part.name)
-
-
 def test_the_preview_shows_the_actor_the_reference_ahead_exactly():
     """observation.preview_s: for each time t, p_d(k + L + t/dt) − p_d(k + L), read by the actor
     (before the critics-only parts), on a known circle and after some steps."""

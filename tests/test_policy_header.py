@@ -229,7 +229,7 @@ STATEFUL = {  # memory, preview and reference integral (robust, cf2: omega); and
     # world frame, the error to p_d,k+1, q as integrated, a reference integral at its limit
     "robust": lambda: sp.preset("robust").task,
     "cf2": lambda: sp.preset("cf2").task,
-    "cf2_history_body": lambda: sp.preset("cf2").task.replace(action_history_s=(0.05, 0.2), body_frame=True),
+    "cf2_history": lambda: sp.preset("cf2").task.replace(action_history_s=(0.05, 0.2)),
     "two_vehicles_world": lambda: make_config(
         "practical", hover_centered_thrust=True, vehicles=TWO, obs_memory=True, preview_s=(0.2,),
         obs_frame="world", err_ref="next", canonical_q_obs=False, ref_integral_gain=3.0,

@@ -121,12 +121,6 @@ C_HELPERS = """
 static inline float ttd3_clip(float x, float limit) {
   return x < -limit ? -limit : (x > limit ? limit : x);
 }
-static inline void ttd3_to_body(const float q[4], float *x) {  /* x = R(q)^T x, R body to world */
-  const float w = q[0], a = q[1], b = q[2], c = q[3], x0 = x[0], x1 = x[1], x2 = x[2];
-  x[0] = (1.0f - 2.0f * (b * b + c * c)) * x0 + 2.0f * (a * b + w * c) * x1 + 2.0f * (a * c - w * b) * x2;
-  x[1] = 2.0f * (a * b - w * c) * x0 + (1.0f - 2.0f * (a * a + c * c)) * x1 + 2.0f * (b * c + w * a) * x2;
-  x[2] = 2.0f * (a * c + w * b) * x0 + 2.0f * (b * c - w * a) * x1 + (1.0f - 2.0f * (a * a + b * b)) * x2;
-}
 static inline float ttd3_distance(const float *a, const float *b) {
   const float dx = a[0] - b[0], dy = a[1] - b[1], dz = a[2] - b[2];
   return sqrtf(dx * dx + dy * dy + dz * dz);
@@ -243,11 +237,6 @@ def c_state(api: dict, vehicles: dict | None) -> list[str]:
         entry, dst = _c_entry(name, api), f"obs[{at} + i]" if at else "obs[i]"
         loop = f"obs[{at}]" if size == 1 else f"for (i = 0; i < {size}; ++i) {dst}"
         out.append(f"  {loop} = {entry};  /* {name} */")
-        at += size
-    at = 0
-    for name, size in api["parts"].items():
-        if name in api.get("body_frame", []):
-            out.append(f"  ttd3_to_body(q, obs + {at});  /* {name}, into the body frame */")
         at += size
     remember = "  int i;\n  for (i = 0; i < 4; ++i) s->last_action[i] = ttd3_clip(action[i], 1.0f);"
     if hist:

@@ -104,11 +104,6 @@ def onnx_model(p: Policy, name: str = "ttd3_policy"):
     return model
 
 
-def _body_frame(cfg: EnvConfig) -> list[str]:
-    """The parts rotated into the body frame (``observation.body_frame``; none without it)."""
-    return list(observation.body_frame_parts(observation.layout(cfg))) if cfg.observation.body_frame else []
-
-
 def c_api(cfg: EnvConfig) -> dict:
     """``policy.json``'s ``c_api``: how firmware flies ``policy.h`` (``call_order``, one call per
     control step) and what the header's ``ttd3_observe`` builds from what (:func:`c_state` writes
@@ -139,7 +134,6 @@ def c_api(cfg: EnvConfig) -> dict:
         "physics step k + the i-th value, k the control step's physics step (ttd3_ref_steps)",
         parts={part.name: part.size for part in parts},
         frame=o.obs_frame,
-        body_frame=_body_frame(cfg),
         error_reference="now" if o.err_ref == "current" else ("next" if "next" in refs else "ahead"),
         canonical_q=o.canonical_q_obs,
         memory={k: m[k] for k in ("leak", "dt_s", "action_history_keep") if k in m} if o.obs_memory else None,
@@ -280,9 +274,6 @@ def observation_spec(cfg: EnvConfig, obs_size: int) -> dict:
         if cfg.observation.preview_s
         else None,  # fmt: skip
         preview_s=list(cfg.observation.preview_s),
-        body_frame=_body_frame(cfg),
-        body_frame_meaning="these parts, built as above, then rotated into the body frame: x_body = "
-        "R(q)^T x, R(q) the measured attitude's rotation matrix (body to world)",
     )
 
 

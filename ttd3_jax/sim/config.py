@@ -108,9 +108,6 @@ class ObservationConfig:
     # leaky averages of the applied action, one per time constant (s): a short history of the
     # commands, from which the policy can tell what the rotors and rate loop are doing now
     action_history_s: tuple[float, ...] = ()
-    # every 3-vector part but omega (positions, velocity, error integral, preview) rotated into the
-    # body frame (x_body = R(q)ᵀ x_world, q as measured): the reference as the vehicle sees it (DATT)
-    body_frame: bool = False
 
     def __post_init__(self):
         f = lambda name: _where("observation", name)  # noqa: E731
@@ -137,7 +134,7 @@ class ObservationConfig:
         checks.integer(f("lookahead_k"), self.lookahead_k, 1)
         checks.one_of(f("err_ref"), self.err_ref, ERR_REFS)
         checks.one_of(f("obs_frame"), self.obs_frame, OBS_FRAMES)
-        for name in ("canonical_q_obs", "obs_memory", "obs_privileged", "body_frame"):
+        for name in ("canonical_q_obs", "obs_memory", "obs_privileged"):
             checks.boolean(f(name), getattr(self, name))
 
 

@@ -46,7 +46,6 @@ from ttd3_jax.sim.dynamics import (
     model_state,
     quat_from_axis_angle,
     quat_mul,
-    quat_to_rotmat,
     rk4_step,
     yaw_of,
 )
@@ -552,10 +551,6 @@ class TrackingEnv(Env):
 
         for t in c.observation.preview_s:  # the actor's preview of the reference
             parts[observation.preview_name(t)] = ahead(t)
-        if c.observation.body_frame:  # world -> body: R(q)ᵀ x
-            rot = quat_to_rotmat(q)
-            for name in observation.body_frame_parts(self.layout):
-                parts[name] = parts[name] @ rot
         if c.observation.obs_privileged:
             wind_mean = self._randomized and c.randomization.wind_mean > 0
             parts["wind"] = ps.wind + ps.plant.wind_mean if wind_mean else ps.wind

@@ -92,13 +92,6 @@ class ObsLayout:
                      critic_only=p.critic_only) for p in self.parts]  # fmt: skip
 
 
-def body_frame_parts(lay: ObsLayout) -> tuple[str, ...]:
-    """The parts ``observation.body_frame`` rotates into the body frame: every 3-vector the actor
-    reads but omega (already in it) and the vehicle descriptor."""
-    turn = [p for p in lay.parts if p.size == 3 and p.name not in ("omega", "vehicle") and not p.critic_only]
-    return tuple(p.name for p in turn)
-
-
 def preview_name(t: float) -> str:
     """The part of the actor's preview point ``t`` s after p_d,k+L (``observation.preview_s``)."""
     return f"preview_{t:g}s"
