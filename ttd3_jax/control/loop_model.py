@@ -37,7 +37,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from ttd3_jax.sim import inner_loop as il
-from ttd3_jax.sim.dynamics import QuadParams, QuadState, body_z, quat_rate, rk4
+from ttd3_jax.sim.dynamics import QuadParams, QuadState, body_z, quat_rate
 
 HIDDEN = 7  # torque (3), integral (3), thrust (1)
 
@@ -96,17 +96,25 @@ def derivative(quad: QuadParams, x: LoopModelState, u: jax.Array) -> LoopModelSt
                           thrust=(thrust_c - x.thrust) / lag)  # fmt: skip
 
 
+def _axpy(a, dx, x):
+    return jax.tree.map(lambda xi, di: xi + a * di, x, dx)
+
+
 def step(quad: QuadParams, x: LoopModelState, u: jax.Array, dt: float, substeps: int = 1) -> LoopModelState:
     """Advance ``x`` by ``dt`` s under zero-order-hold ``u``: ``substeps`` RK4 steps, each followed
     by the firmware's clamp of the integral; ``q`` back to unit norm at the end."""
+    h = dt / substeps
     lim = jnp.asarray(quad.loop.i_limit, x.v.dtype)
 
-    def substep(_, x):
-        x = rk4(lambda s: derivative(quad, s, u), x, dt / substeps)
+    def rk4(_, x):
+        k1 = derivative(quad, x, u)
+        k2 = derivative(quad, _axpy(0.5 * h, k1, x), u)
+        k3 = derivative(quad, _axpy(0.5 * h, k2, x), u)
+        k4 = derivative(quad, _axpy(h, k3, x), u)
+        x = jax.tree.map(lambda xi, a, b, c, d: xi + (h / 6.0) * (a + 2 * b + 2 * c + d), x, k1, k2, k3, k4)
         return x.replace(integ=jnp.clip(x.integ, -lim, lim))
 
-    # a loop: a small graph
-    x = substep(0, x) if substeps == 1 else jax.lax.fori_loop(0, substeps, substep, x)
+    x = rk4(0, x) if substeps == 1 else jax.lax.fori_loop(0, substeps, rk4, x)  # a loop: a small graph
     return x.replace(q=x.q / jnp.linalg.norm(x.q))
 
 

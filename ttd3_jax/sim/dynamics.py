@@ -325,17 +325,8 @@ def _firmware_derivative(params: QuadParams, x: FirmwareState, s_cmd: jax.Array,
                          motor=il.rotor_rate(loop, x.motor, s_cmd), integ=zero, gyro=zero)  # fmt: skip
 
 
-def _axpy(a, dx, x):
+def _axpy(a, dx: QuadState, x: QuadState) -> QuadState:
     return jax.tree.map(lambda xi, di: xi + a * di, x, dx)
-
-
-def rk4(f, x, h: float):
-    """One classical RK4 step of dx/dt = f(x) over ``h`` s, for a pytree state ``x``."""
-    k1 = f(x)
-    k2 = f(_axpy(0.5 * h, k1, x))
-    k3 = f(_axpy(0.5 * h, k2, x))
-    k4 = f(_axpy(h, k3, x))
-    return jax.tree.map(lambda xi, a, b, c, d: xi + h / 6.0 * (a + 2.0 * b + 2.0 * c + d), x, k1, k2, k3, k4)
 
 
 def rk4_step(params: QuadParams, x: QuadState, u: jax.Array, dt: float,
@@ -347,8 +338,15 @@ def rk4_step(params: QuadParams, x: QuadState, u: jax.Array, dt: float,
     if firmware:  # the firmware's step, once per physics step: u becomes rotor-speed commands
         gyro = x.w
         u, integ = il.command(params.loop, u[0], u[1:4], gyro, x.gyro, x.integ, dt)
+    h = dt / substeps
     for _ in range(substeps):  # static, small: unrolled
-        x = rk4(lambda s: derivative(params, s, u, accel_ext), x, dt / substeps)
+        k1 = derivative(params, x, u, accel_ext)
+        k2 = derivative(params, _axpy(0.5 * h, k1, x), u, accel_ext)
+        k3 = derivative(params, _axpy(0.5 * h, k2, x), u, accel_ext)
+        k4 = derivative(params, _axpy(h, k3, x), u, accel_ext)
+        x = jax.tree.map(
+            lambda xi, a, b, c, d: xi + (h / 6.0) * (a + 2.0 * b + 2.0 * c + d), x, k1, k2, k3, k4
+        )
     q = x.q / jnp.linalg.norm(x.q) if renormalize else x.q
     if firmware:  # the PID measured the rates at the start of this step
         return x.replace(q=q, integ=integ, gyro=gyro)
