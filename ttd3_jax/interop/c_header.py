@@ -179,11 +179,10 @@ def _c_entry(name: str, api: dict) -> str:
                 action_history="s->action_history[i]", vehicle="s->vehicle[i]")[name]  # fmt: skip
 
 
-def c_state(api: dict, vehicles: dict | None) -> list[str]:
-    """The C of ``c_api``: ``ttd3_state`` and ``ttd3_reset``, ``ttd3_observe`` (the env's update
-    of the state after a control step, then the observation in the layout's order),
-    ``ttd3_remember`` and ``ttd3_step``."""
-    refs, mem, ri, keep = api["reference_points"], api["memory"], api["reference_integral"], api["state"]
+def _c_constants(api: dict) -> list[str]:
+    """The #defines and constant arrays of ``c_api``: the reference points, the memory's leak and
+    step, the reference integral's constants, the action history's keep factors."""
+    refs, mem, ri = api["reference_points"], api["memory"], api["reference_integral"]
     out = ["", "/* ---- The state the policy keeps, and one control step (policy.json: c_api) ---- */",
            f"#define TTD3_REF_COUNT {len(refs)}", *(f"#define {_c_ref(n)} {i}" for i, n in enumerate(refs)),
            f"#define TTD3_REF_ERROR {_c_ref(api['error_reference'])}",
@@ -204,6 +203,29 @@ def c_state(api: dict, vehicles: dict | None) -> list[str]:
         keeps = ", ".join(map(c_float, hist))
         out += [f"#define TTD3_ACTION_HISTORY_SIZE {4 * len(hist)}",
                 f"static const float ttd3_action_history_keep[{len(hist)}] = {{{keeps}}};"]  # fmt: skip
+    return out
+
+
+def _c_remember(api: dict) -> str:
+    """The body of ``ttd3_remember``: the last action, clipped, and the action history's update."""
+    if "last_action" not in api["state"]:
+        return "  (void)s;\n  (void)action;"
+    out = "  int i;\n  for (i = 0; i < 4; ++i) s->last_action[i] = ttd3_clip(action[i], 1.0f);"
+    if "action_history" in api["state"]:
+        out += ("\n  for (i = 0; i < TTD3_ACTION_HISTORY_SIZE; ++i) {"
+                "\n    const float keep = ttd3_action_history_keep[i / 4];"
+                "\n    s->action_history[i] = keep * s->action_history[i]"
+                " + (1.0f - keep) * s->last_action[i % 4];"
+                "\n  }")  # fmt: skip
+    return out
+
+
+def c_state(api: dict, vehicles: dict | None) -> list[str]:
+    """The C of ``c_api``: ``ttd3_state`` and ``ttd3_reset``, ``ttd3_observe`` (the env's update
+    of the state after a control step, then the observation in the layout's order),
+    ``ttd3_remember`` and ``ttd3_step``."""
+    refs, mem, ri, keep = api["reference_points"], api["memory"], api["reference_integral"], api["state"]
+    out = _c_constants(api)
     size = {n: C_STATE[n][0] or api["parts"][n] for n in keep}
     # the struct (C99 needs a member) and what ttd3_reset sets
     members = [f"  float {n}[{size[n]}];  /* {C_STATE[n][1]} */" for n in keep]
@@ -238,15 +260,4 @@ def c_state(api: dict, vehicles: dict | None) -> list[str]:
         loop = f"obs[{at}]" if size == 1 else f"for (i = 0; i < {size}; ++i) {dst}"
         out.append(f"  {loop} = {entry};  /* {name} */")
         at += size
-    remember = "  int i;\n  for (i = 0; i < 4; ++i) s->last_action[i] = ttd3_clip(action[i], 1.0f);"
-    if hist:
-        remember += (
-            "\n  for (i = 0; i < TTD3_ACTION_HISTORY_SIZE; ++i) {"
-            "\n    const float keep = ttd3_action_history_keep[i / 4];"
-            "\n    s->action_history[i] = keep * s->action_history[i]"
-            " + (1.0f - keep) * s->last_action[i % 4];"
-            "\n  }"
-        )
-    return (
-        out + (C_STEP % (remember if "last_action" in keep else "  (void)s;\n  (void)action;")).splitlines()
-    )
+    return out + (C_STEP % _c_remember(api)).splitlines()

@@ -107,7 +107,7 @@ class ObservationConfig:
     ref_integral_limit: Annotated[float, Suppress] = 0.01  # m
     # leaky averages of the applied action, one per time constant (s): a short history of the
     # commands, from which the policy can tell what the rotors and rate loop are doing now
-    action_history_s: tuple[float, ...] = ()
+    action_history_s: Annotated[tuple[float, ...], Suppress] = ()
 
     def __post_init__(self):
         f = lambda name: _where("observation", name)  # noqa: E731
