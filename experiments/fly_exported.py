@@ -29,18 +29,8 @@ import numpy as np
 
 TRACKS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "tracks", "protocol")
 # the parts this script builds, and the preview's (``preview_{t:g}s``, one per time of preview_s)
-PARTS = (
-    "p",
-    "v",
-    "q",
-    "p_ahead",
-    "p_ahead_error",
-    "error",
-    "omega",
-    "last_action",
-    "error_integral",
-    "action_history",
-)
+PARTS = ("p", "v", "q", "p_ahead", "p_ahead_error", "error", "omega", "last_action", "error_integral",
+         "action_history")  # fmt: skip
 PREVIEW = "preview_"
 RATE_MODELS = ("instant", "first_order")
 
