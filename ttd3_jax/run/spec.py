@@ -52,8 +52,9 @@ ROBUST_TASK = dict(
 # loop and motors (sim.inner_loop), with what a vehicle never tells exactly drawn per episode
 # around the identified values: rotor time constants and rate-PID gains x0.7-1.4, drag x0.5-1.5,
 # inertia x0.8-1.25 per axis; a heading cost 0.1 ψ² and an action-rate cost 1.0 ||Δa||² per
-# physics step (without either, the heading drifts and one seed in three crashed in crazyflow;
-# with both, each seed flies crazyflow within 1.1x of our simulator: experiments/transfer_recipes.py);
+# physics step (without the heading cost a seed drifts off; without the action-rate cost the
+# seeds are more precise but fly crazyflow at up to 1.56x our simulator, with it 1.14x:
+# experiments/transfer_recipes.py, results/transfer/README.md);
 # the applied action averaged over 0.05, 0.1 and 0.2 s (what the rotors are doing: without it the
 # thrust limit-cycles, ±7 mm in z on Spiral-RT) and integral action within 1 cm of the track, up
 # to a 2 cm shift (robust's 5 mm band left the policies' 7 mm offsets in place).
