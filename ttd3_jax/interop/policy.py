@@ -293,7 +293,7 @@ def memory_spec(cfg: EnvConfig) -> dict:
         reference_integral=reference_integral_spec(cfg) if cfg.observation.ref_integral_gain > 0 else None,
     )
     if cfg.observation.action_history_s:
-        keep = [math.exp(-cfg.control_dt / t) for t in cfg.observation.action_history_s]
+        keep = list(cfg.action_history_keep)
         out.update(
             action_history=(
                 "after each control step, for each time constant tau_j (s) of "

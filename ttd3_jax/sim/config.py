@@ -344,6 +344,12 @@ class EnvConfig:
         return self.dt * self.action_repeat
 
     @property
+    def action_history_keep(self) -> tuple[float, ...]:
+        """exp(-control_dt / τ) for each τ of ``observation.action_history_s``: what each average
+        of the action history keeps of itself per control step (the env's and the export's)."""
+        return tuple(math.exp(-self.control_dt / t) for t in self.observation.action_history_s)
+
+    @property
     def episode_length(self) -> int:
         """Env (control) steps per episode."""
         return self.episode_steps // self.action_repeat

@@ -402,8 +402,7 @@ class TrackingEnv(Env):
         if c.observation.obs_memory:
             ps = ps.replace(last_action=a)
         if c.observation.action_history_s:
-            keep = [[math.exp(-c.control_dt / t)] for t in c.observation.action_history_s]
-            keep = jnp.asarray(keep, a.dtype)
+            keep = jnp.asarray(c.action_history_keep, a.dtype)[:, None]
             ps = ps.replace(act_hist=keep * ps.act_hist + (1.0 - keep) * a)
         obs, ps = self.observe(ps, p_ref, integrate=True)
         f = reward.dtype
