@@ -7,9 +7,9 @@ crazyflow the crashes, the largest ratio to our simulator and how many tracks be
 Mellinger controller, over Spiral-RT, LOS-RT seeds 0-4 and the 0.5 m circle (issue 50's
 criteria).  Variants (``VARIANTS``): the preset (a heading cost, an action-rate cost, memory
 and the action history); without the action history; without memory (no last action, error
-integral, integral action or history, so no action-rate cost either); either cost alone;
-neither; without the inner loop in training (``robust``, instant rates).  The body-frame
-observation was a variant until it was measured and removed (926f0bb had it).
+integral, integral action or history, so no action-rate cost either); either cost alone; the
+action-rate cost at 0.3 and 0.1; neither; without the inner loop in training (``robust``,
+instant rates).  The body-frame observation was a variant until it was measured and removed (926f0bb had it).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
     python experiments/transfer_recipes.py --out DIR --variants cf2 action_rate     # some
@@ -44,6 +44,8 @@ VARIANTS = {
         {"rho_rate": 0.0, "obs_memory": False, "ref_integral_gain": 0.0, "action_history_s": ()},
     ),
     "heading_only": ("heading cost only", "cf2", {"rho_rate": 0.0}),
+    "rate0.3": ("action-rate cost 0.3 ||Δa||²", "cf2", {"rho_rate": 0.3}),
+    "rate0.1": ("action-rate cost 0.1 ||Δa||²", "cf2", {"rho_rate": 0.1}),
     "rate_only": ("action-rate cost only", "cf2", {"rho_yaw": 0.0}),
     "neither": ("neither cost", "cf2", {"rho_yaw": 0.0, "rho_rate": 0.0}),
     "instant": ("trained with instant rates (robust)", "robust", {}),
