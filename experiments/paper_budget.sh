@@ -1,6 +1,7 @@
 #!/bin/bash
 # The `paper` preset at the paper's budget (issue 35): seed 0 to 3e6 transitions, seeds 1-2
-# (vmapped) to 1e6, each at nice 19 in the background, from a pinned git worktree so that later
+# (vmapped) to 1e6, each in the background at the idle scheduling class (chrt -i 0: it takes
+# only CPU that nothing else wants) and nice 19, from a pinned git worktree so that later
 # commits never change a run in flight.  Reported by experiments/paper_budget.py.
 #
 #   bash experiments/paper_budget.sh start    # new runs (refuses if the run directories exist)
@@ -8,13 +9,13 @@
 #   bash experiments/paper_budget.sh status   # the last progress line of each log
 #
 # Environment (defaults in brackets): LONGRUNS [/work/longruns] holds the run directories, logs
-# and the compilation cache; WORKTREE [/work/lr-paper] the pinned checkout of COMMIT [b4d51b1];
+# and the compilation cache; WORKTREE [/work/lr-paper] the pinned checkout of COMMIT [7c6bdf6];
 # PY [the repository's .venv/bin/python] a python with this project's dependencies installed.
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/.." && pwd)
 LONGRUNS=${LONGRUNS:-/work/longruns}
 WORKTREE=${WORKTREE:-/work/lr-paper}
-COMMIT=${COMMIT:-b4d51b1}
+COMMIT=${COMMIT:-7c6bdf6}
 PY=${PY:-$repo/.venv/bin/python}
 seed0=$LONGRUNS/paper/seed0-3e6
 seeds12=$LONGRUNS/paper/seeds12-1e6
@@ -25,7 +26,7 @@ usage() { echo "usage: bash experiments/paper_budget.sh start|resume|status" >&2
 
 launch() {  # launch LOG ARGS...: one run in the background, niced, importing the worktree's package
   local log=$1; shift
-  (cd "$WORKTREE" && PYTHONPATH="$WORKTREE" nohup nice -n 19 "$PY" -m ttd3_jax.train "$@" \
+  (cd "$WORKTREE" && PYTHONPATH="$WORKTREE" nohup chrt -i 0 nice -n 19 "$PY" -m ttd3_jax.train "$@" \
     --compile-cache "$LONGRUNS/xla-paper" >> "$log" 2>&1 &)
 }
 
