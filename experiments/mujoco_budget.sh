@@ -1,0 +1,57 @@
+#!/bin/bash
+# Claim 4's MuJoCo comparison (T-TD3 vs TD3, 4 tasks, 3 seeds vmapped, 300k env steps each)
+# regenerated in the background: one process per algorithm over the four tasks, each at the idle
+# scheduling class (chrt -i 0: it takes only CPU that nothing else wants) and nice 19, from a
+# pinned git worktree so that later commits never change a run in flight.  Checkpointed after
+# every evaluation; experiments/mujoco_compare.py skips a finished task and resumes the others.
+#
+#   bash experiments/mujoco_budget.sh start    # new runs (refuses if the output folder exists)
+#   bash experiments/mujoco_budget.sh resume   # each from its newest checkpoint
+#   bash experiments/mujoco_budget.sh status   # the last progress line of each log
+#   bash experiments/mujoco_budget.sh report   # rebuild the tables and figure in the output folder
+#
+# Environment (defaults in brackets): LONGRUNS [/work/longruns] holds the output folder
+# (LONGRUNS/mujoco, copied into results/mujoco when done), logs and the compilation cache;
+# WORKTREE [/work/lr-mujoco] the pinned checkout of COMMIT [7c6bdf6]; PY [the repository's
+# .venv/bin/python] a python with this project's dependencies installed.
+set -euo pipefail
+repo=$(cd "$(dirname "$0")/.." && pwd)
+LONGRUNS=${LONGRUNS:-/work/longruns}
+WORKTREE=${WORKTREE:-/work/lr-mujoco}
+COMMIT=${COMMIT:-7c6bdf6}
+PY=${PY:-$repo/.venv/bin/python}
+out=$LONGRUNS/mujoco
+logs=$LONGRUNS/logs
+args=(--tasks ant walker2d inverted_double_pendulum hopper --steps 300000 --warmup 25000 --eval-every 5000
+      --checkpoint-every 1 --out "$out" --compile-cache "$LONGRUNS/xla-mujoco")
+
+usage() { echo "usage: bash experiments/mujoco_budget.sh start|resume|status|report" >&2; exit 2; }
+[ $# -eq 1 ] || usage
+
+launch() {  # launch ALGO: one algorithm's four tasks in the background, importing the worktree's package
+  (cd "$WORKTREE" && PYTHONPATH="$WORKTREE" nohup chrt -i 0 nice -n 19 "$PY" experiments/mujoco_compare.py \
+    --algos "$1" "${args[@]}" >> "$logs/mujoco-$1.log" 2>&1 &)
+}
+
+case $1 in
+  start|resume)
+    if [ "$1" = start ]; then
+      [ ! -e "$out" ] || { echo "mujoco_budget.sh start: $out exists; use resume" >&2; exit 1; }
+      [ -d "$WORKTREE" ] || git -C "$repo" worktree add --detach "$WORKTREE" "$COMMIT"
+    else
+      [ -d "$out" ] || { echo "mujoco_budget.sh resume: no output folder $out; use start" >&2; exit 1; }
+    fi
+    [ "$(git -C "$WORKTREE" rev-parse --short=7 HEAD)" = "${COMMIT:0:7}" ] \
+      || { echo "mujoco_budget.sh: $WORKTREE is not at $COMMIT" >&2; exit 1; }
+    mkdir -p "$logs" "$out"
+    launch ttd3
+    launch td3
+    ;;
+  status)
+    for log in "$logs/mujoco-ttd3.log" "$logs/mujoco-td3.log"; do
+      echo "$log: $(grep -E 'epoch|compiled|resum|step' "$log" | tail -n 1)"
+    done
+    ;;
+  report) (cd "$WORKTREE" && PYTHONPATH="$WORKTREE" "$PY" experiments/mujoco_compare.py "${args[@]}" --report-only) ;;
+  *) usage ;;
+esac
