@@ -9,7 +9,8 @@ criteria).  Variants (``VARIANTS``): the preset (a heading cost, an action-rate 
 and the action history); without the action history; without memory (no last action, error
 integral, integral action or history, so no action-rate cost either); either cost alone; the
 action-rate cost at 0.3 and 0.1; neither; without the inner loop in training (``robust``,
-instant rates).  The body-frame observation was a variant until it was measured and removed (926f0bb had it).
+instant rates); 128-128 networks.  The body-frame observation was a variant until it was
+measured and removed (926f0bb had it).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
     python experiments/transfer_recipes.py --out DIR --variants cf2 action_rate     # some
@@ -34,7 +35,7 @@ import sys
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 TRACKS = ("spiral_rt", *(f"los_rt_seed{s:02d}" for s in range(5)), "circle_r0.5")
-# variant -> (description, preset, EnvConfig changes by field name)
+# variant -> (description, preset, EnvConfig changes by field name[, TrainConfig changes])
 VARIANTS = {
     "cf2": ("the cf2 preset (heading 0.1 ψ², action rate 1.0 ||Δa||², memory, action history)", "cf2", {}),
     "no_history": ("without the action history", "cf2", {"action_history_s": ()}),
@@ -49,6 +50,7 @@ VARIANTS = {
     "rate_only": ("action-rate cost only", "cf2", {"rho_yaw": 0.0}),
     "neither": ("neither cost", "cf2", {"rho_yaw": 0.0, "rho_rate": 0.0}),
     "instant": ("trained with instant rates (robust)", "robust", {}),
+    "wide": ("128-128 networks", "cf2", {}, {"hidden": (128, 128)}),
 }
 QUICK = dict(total_transitions=30_000, epochs=2)  # --quick's budget
 
@@ -64,17 +66,25 @@ def sh(cmd: list[str], log: str) -> None:
 
 def made_with(name: str, quick: bool) -> dict:
     """What variant ``name`` trains: its preset, task changes and budget (``flags.json``)."""
-    _, preset, changes = VARIANTS[name]  # as flags.json records it (JSON: tuples are lists)
-    return json.loads(json.dumps({"preset": preset, "task": changes, "budget": QUICK if quick else {}}))
+    _, preset, changes, *train = VARIANTS[name]  # as flags.json records it (JSON: tuples are lists)
+    made = {"preset": preset, "task": changes, "budget": QUICK if quick else {}}
+    return json.loads(json.dumps(made | ({"train": train[0]} if train else {})))
 
 
 def train(made: dict, out: str) -> None:
     """Train the variant ``made`` into a new run directory under ``out``."""
     from ttd3_jax.run import loop
+
+    loop.run(variant_spec(made), out)
+
+
+def variant_spec(made: dict):
+    """The RunSpec of the variant ``made``: its preset at its budget, with its changes (validated)."""
     from ttd3_jax.run import spec as sp
 
     spec = sp.preset(made["preset"], **made["budget"])
-    loop.run(sp.replace(spec, task=spec.task.replace(**task_changes(made))), out)
+    train = {k: tuple(v) if isinstance(v, list) else v for k, v in made.get("train", {}).items()}
+    return sp.replace(spec, task=spec.task.replace(**task_changes(made)), **train)
 
 
 def task_changes(made: dict) -> dict:

@@ -28,13 +28,17 @@ def test_a_seed_summary_reads_crashes_the_worst_ratio_and_the_mellinger_count():
     assert row.startswith("| d | 0 | 8.00 | 350.00 | los_rt_seed00 | 2.00 (") and row.endswith("| 2/3 |")
 
 
-def test_every_variant_is_the_preset_plus_valid_task_changes():
+def test_every_variant_is_the_preset_plus_valid_changes():
     from ttd3_jax.run import spec as sp
 
     for name in tr.VARIANTS:
         made = tr.made_with(name, quick=True)
-        spec = sp.preset(made["preset"], **made["budget"])
-        spec.task.replace(**tr.task_changes(made))  # validated: a bad change raises here
+        spec = tr.variant_spec(made)  # validated: a bad change raises here
+        base = sp.preset(made["preset"], **made["budget"])
+        assert spec.task == base.task.replace(**tr.task_changes(made))
+        for field, value in made.get("train", {}).items():
+            assert getattr(spec.train, field) == tuple(value)
+    assert tr.variant_spec(tr.made_with("wide", quick=True)).train.hidden == (128, 128)
 
 
 def test_a_folder_made_otherwise_is_refused_before_training(tmp_path):
