@@ -9,8 +9,8 @@ criteria).  Variants (``VARIANTS``): the preset (a heading cost, an action-rate 
 and the action history); without the action history; without memory (no last action, error
 integral, integral action or history, so no action-rate cost either); either cost alone; the
 action-rate cost at 0.3 and 0.1; neither; without the inner loop in training (``robust``,
-instant rates); 128-128 networks.  The body-frame observation was a variant until it was
-measured and removed (926f0bb had it).
+instant rates); 128-128 networks; 1 s rollouts for the actor instead of 0.5 s.  The body-frame
+observation was a variant until it was measured and removed (926f0bb had it).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
     python experiments/transfer_recipes.py --out DIR --variants cf2 action_rate     # some
@@ -51,6 +51,7 @@ VARIANTS = {
     "neither": ("neither cost", "cf2", {"rho_yaw": 0.0, "rho_rate": 0.0}),
     "instant": ("trained with instant rates (robust)", "robust", {}),
     "wide": ("128-128 networks", "cf2", {}, {"hidden": (128, 128)}),
+    "horizon100": ("1 s rollouts for the actor (100 control steps)", "cf2", {}, {"model_horizon": 100}),
 }
 QUICK = dict(total_transitions=30_000, epochs=2)  # --quick's budget
 
