@@ -187,14 +187,20 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: {VARIANTS[name][0]} ...", flush=True)
         summaries.append(run_variant(name, a.out, a.crazyflow_python, a.quick))
         print(table(summaries[-1:]), flush=True)
-    # the table of every variant measured under OUT, this call's and earlier ones'
-    found = [os.path.join(a.out, n, "summary.json") for n in VARIANTS]
+    print(collect(a.out))
+    return 0
+
+
+def collect(out: str) -> str:
+    """Write ``OUT/table.md`` and ``OUT/recipes.json`` from every variant measured under ``out``,
+    this call's and earlier ones' (``VARIANTS``' order, then variants since removed); the table."""
+    found = [os.path.join(out, n, "summary.json") for n in VARIANTS]
+    found += sorted(set(glob.glob(os.path.join(out, "*", "summary.json"))) - set(found))
     summaries = [json.load(open(f)) for f in found if os.path.isfile(f)]
     text = table(summaries)
-    open(os.path.join(a.out, "table.md"), "w").write(text + "\n")
-    json.dump(summaries, open(os.path.join(a.out, "recipes.json"), "w"), indent=2)
-    print(text)
-    return 0
+    open(os.path.join(out, "table.md"), "w").write(text + "\n")
+    json.dump(summaries, open(os.path.join(out, "recipes.json"), "w"), indent=2)
+    return text
 
 
 if __name__ == "__main__":
