@@ -5,12 +5,13 @@ firmware's rate loop (``experiments/transfer_crazyflow.py``, in the crazyflow ve
 Per variant and seed: Σ‖e‖ in our simulator on Spiral-RT and LOS-RT (nominal), and on
 crazyflow the crashes, the largest ratio to our simulator and how many tracks beat crazyflow's
 Mellinger controller, over Spiral-RT, LOS-RT seeds 0-4 and the 0.5 m circle (issue 50's
-criteria).  Variants (``VARIANTS``): the preset (a heading cost, an action-rate cost, memory
-and the action history); without the action history; without memory (no last action, error
-integral, integral action or history, so no action-rate cost either); either cost alone; the
-action-rate cost at 0.3 and 0.1; neither; without the inner loop in training (``robust``,
-instant rates); 128-128 networks; 1 s rollouts for the actor instead of 0.5 s.  The body-frame
-observation was a variant until it was measured and removed (926f0bb had it).
+criteria). Variants (``VARIANTS``): the preset (a heading cost, an action-rate cost, memory and
+the action history); without the action history; without memory (no last action, error integral,
+integral action or history, so no action-rate cost either); either cost alone; the action-rate
+cost at 0.3 and 0.1; neither; without the inner loop in training (``robust``, instant rates);
+128-128 networks; 1 s rollouts for the actor instead of 0.5 s; training without the observed
+position's bias, and without its noise too. The body-frame observation was a variant until it
+was measured and removed (926f0bb had it).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
     python experiments/transfer_recipes.py --out DIR --variants cf2 action_rate     # some
@@ -52,6 +53,12 @@ VARIANTS = {
     "instant": ("trained with instant rates (robust)", "robust", {}),
     "wide": ("128-128 networks", "cf2", {}, {"hidden": (128, 128)}),
     "horizon100": ("1 s rollouts for the actor (100 control steps)", "cf2", {}, {"model_horizon": 100}),
+    "no_bias": ("no position bias in training", "cf2", {"pos_bias": 0.0}),
+    "clean": (
+        "no position bias or observation noise in training",
+        "cf2",
+        {"pos_bias": 0.0, "obs_noise": (0.0, 0.0)},
+    ),
 }
 QUICK = dict(total_transitions=30_000, epochs=2)  # --quick's budget
 
