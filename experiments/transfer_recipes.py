@@ -53,7 +53,6 @@ VARIANTS = {
     "instant": ("trained with instant rates (robust)", "robust", {}),
     "wide": ("128-128 networks", "cf2", {}, {"hidden": (128, 128)}),
     "horizon100": ("1 s rollouts for the actor (100 control steps)", "cf2", {}, {"model_horizon": 100}),
-    "value": ("the rollout's return ends with the critics' value", "cf2", {}, {"model_value": True}),
     "no_bias": ("no position bias in training", "cf2", {"pos_bias": 0.0}),
     "clean": (
         "no position bias or observation noise in training",

@@ -98,9 +98,6 @@ class TrainConfig:
     # noise), back-propagates Σ γ^k r_k through the simulator into the actor, and stores the
     # H·num_envs transitions for the usual TD3 critic updates.
     model_horizon: int = 0
-    # with model_horizon and critics: the rollout's return ends with γ^H min_i Q'_i(s_H, π(s_H))
-    # (the target critics' value of where it stopped; SHAC's terminal value), not at the horizon
-    model_value: Annotated[bool, Suppress] = False
     hidden: tuple[int, ...] = (256, 256)  # widths of the hidden layers of the actor and of each critic
     critic_arch: Annotated[str, Suppress] = (
         "mlp"  # "mlp" (the paper's) | "residual" (SimBa-style LayerNorm blocks)
@@ -188,10 +185,6 @@ def _validate(c: TrainConfig) -> None:
     checks.integer("warmup_transitions", c.warmup_transitions, 0, MAX_TRANSITIONS)
     checks.integer("n_step", c.n_step, 1, 1000)
     checks.boolean("normalize_obs", c.normalize_obs)
-    checks.boolean("model_value", c.model_value)
-    if c.model_value and not (c.model_horizon > 0 and c.trains_critics):
-        checks.fail("model_value", "False unless model_horizon > 0 and updates_per_step > 0 (the value "
-                    "ending a rollout is the critics')", c.model_value)  # fmt: skip
     checks.instance("noise", c.noise, NoiseConfig)
     if len(c.hidden) < 1 or not all(checks.is_integer(h) and h >= 1 for h in c.hidden):
         checks.fail("hidden", "one or more layer widths >= 1", c.hidden)

@@ -45,11 +45,7 @@ def model_loss(actor, s: Setup, ts: TrainState, hp: Hyper, key: jax.Array):
     zero, n = jnp.zeros(()), s.config.num_envs
     carry = (ts.env_state, ts.ep_return, jnp.ones(n), jnp.ones(()), jnp.zeros(n), Finished(zero, zero))
     carry, trs = jax.lax.scan(body, carry, jax.random.split(key, s.config.model_horizon))
-    state, ep_ret, alive, disc, ret, fin = carry
-    if s.config.model_value:  # where the rollout stopped, valued by the target critics
-        a_end = nn.policy(s.nets, actor, stats, state.obs)
-        q_end = jnp.min(nn.twin_q(s.nets, ts.target_critic, stats, state.obs, a_end), axis=0)
-        ret = ret + disc * alive * q_end
+    state, ep_ret, _, _, ret, fin = carry
     return -jnp.mean(ret), (jax.lax.stop_gradient((state, ep_ret)), trs, fin)
 
 
