@@ -10,8 +10,8 @@ the action history); without the action history; without memory (no last action,
 integral action or history, so no action-rate cost either); either cost alone; the action-rate
 cost at 0.3 and 0.1; neither; without the inner loop in training (``robust``, instant rates);
 128-128 networks; 1 s rollouts for the actor instead of 0.5 s; training without the observed
-position's bias, and without its noise too. The body-frame observation was a variant until it
-was measured and removed (926f0bb had it).
+position's bias, and without its noise too, alone and with the action-rate cost at 0.3 and 0.1.
+The body-frame observation was a variant until it was measured and removed (926f0bb had it).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
     python experiments/transfer_recipes.py --out DIR --variants cf2 action_rate     # some
@@ -58,6 +58,16 @@ VARIANTS = {
         "no position bias or observation noise in training",
         "cf2",
         {"pos_bias": 0.0, "obs_noise": (0.0, 0.0)},
+    ),
+    "clean_rate0.3": (
+        "clean, the action-rate cost at 0.3",
+        "cf2",
+        {"pos_bias": 0.0, "obs_noise": (0.0, 0.0), "rho_rate": 0.3},
+    ),
+    "clean_rate0.1": (
+        "clean, the action-rate cost at 0.1",
+        "cf2",
+        {"pos_bias": 0.0, "obs_noise": (0.0, 0.0), "rho_rate": 0.1},
     ),
 }
 QUICK = dict(total_transitions=30_000, epochs=2)  # --quick's budget
