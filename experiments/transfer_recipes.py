@@ -5,13 +5,16 @@ firmware's rate loop (``experiments/transfer_crazyflow.py``, in the crazyflow ve
 Per variant and seed: Σ‖e‖ in our simulator on Spiral-RT and LOS-RT (nominal), and on
 crazyflow the crashes, the largest ratio to our simulator and how many tracks beat crazyflow's
 Mellinger controller, over Spiral-RT, LOS-RT seeds 0-4 and the 0.5 m circle (issue 50's
-criteria). Variants (``VARIANTS``): the preset (a heading cost, an action-rate cost, memory and
-the action history); without the action history; without memory (no last action, error integral,
-integral action or history, so no action-rate cost either); either cost alone; the action-rate
-cost at 0.3 and 0.1; neither; without the inner loop in training (``robust``, instant rates);
-128-128 networks; 1 s rollouts for the actor instead of 0.5 s; training without the observed
-position's bias, and without its noise too, alone and with the action-rate cost at 0.3 and 0.1.
-The body-frame observation was a variant until it was measured and removed (926f0bb had it).
+criteria). Variants (``VARIANTS``): the preset (a heading cost, an action-rate cost of 0.3,
+memory and the action history; no position bias or observation noise in training); the preset
+before a90ac70 changed it (``BEFORE``: a ±1 cm position bias and noise in training,
+the action-rate cost at 1.0), and on top of that preset, as they were measured: without the
+action history; without memory (no last action, error integral, integral action or history, so
+no action-rate cost either); either cost alone; the action-rate cost at 0.3 and 0.1; neither;
+128-128 networks; 1 s rollouts for the actor instead of 0.5 s; without the bias, and without the
+noise too ("clean", the action-rate cost at 0.3 on top of which is today's preset); without the
+inner loop in training (``robust``, instant rates). The body-frame observation and the critics'
+value ending a rollout were variants until they were measured and removed (926f0bb, d8791e4).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
     python experiments/transfer_recipes.py --out DIR --variants cf2 action_rate     # some
@@ -36,39 +39,35 @@ import sys
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 TRACKS = ("spiral_rt", *(f"los_rt_seed{s:02d}" for s in range(5)), "circle_r0.5")
+# The preset's task changes that made today's preset from the one before (a position bias of
+# ±1 cm and observation noise x0-0.75 in training, the action-rate cost at 1.0): the variants
+# measured before the change are changes to that preset, so they are written on top of it here.
+BEFORE = {"pos_bias": 0.01, "obs_noise": (0.0, 0.75), "rho_rate": 1.0}
 # variant -> (description, preset, EnvConfig changes by field name[, TrainConfig changes])
 VARIANTS = {
-    "cf2": ("the cf2 preset (heading 0.1 ψ², action rate 1.0 ||Δa||², memory, action history)", "cf2", {}),
-    "no_history": ("without the action history", "cf2", {"action_history_s": ()}),
+    "cf2": ("the cf2 preset", "cf2", {}),
+    "before": ("the cf2 preset before (bias ±1 cm, noise, action rate 1.0)", "cf2", BEFORE),
+    "no_history": ("without the action history", "cf2", BEFORE | {"action_history_s": ()}),
     "no_memory": (
         "no memory: no last action, error integral, integral action or history (so no action-rate cost)",
         "cf2",
-        {"rho_rate": 0.0, "obs_memory": False, "ref_integral_gain": 0.0, "action_history_s": ()},
+        BEFORE | {"rho_rate": 0.0, "obs_memory": False, "ref_integral_gain": 0.0, "action_history_s": ()},
     ),
-    "heading_only": ("heading cost only", "cf2", {"rho_rate": 0.0}),
-    "rate0.3": ("action-rate cost 0.3 ||Δa||²", "cf2", {"rho_rate": 0.3}),
-    "rate0.1": ("action-rate cost 0.1 ||Δa||²", "cf2", {"rho_rate": 0.1}),
-    "rate_only": ("action-rate cost only", "cf2", {"rho_yaw": 0.0}),
-    "neither": ("neither cost", "cf2", {"rho_yaw": 0.0, "rho_rate": 0.0}),
+    "heading_only": ("heading cost only", "cf2", BEFORE | {"rho_rate": 0.0}),
+    "rate0.3": ("action-rate cost 0.3 ||Δa||²", "cf2", BEFORE | {"rho_rate": 0.3}),
+    "rate0.1": ("action-rate cost 0.1 ||Δa||²", "cf2", BEFORE | {"rho_rate": 0.1}),
+    "rate_only": ("action-rate cost only", "cf2", BEFORE | {"rho_yaw": 0.0}),
+    "neither": ("neither cost", "cf2", BEFORE | {"rho_yaw": 0.0, "rho_rate": 0.0}),
     "instant": ("trained with instant rates (robust)", "robust", {}),
-    "wide": ("128-128 networks", "cf2", {}, {"hidden": (128, 128)}),
-    "horizon100": ("1 s rollouts for the actor (100 control steps)", "cf2", {}, {"model_horizon": 100}),
-    "no_bias": ("no position bias in training", "cf2", {"pos_bias": 0.0}),
+    "wide": ("128-128 networks", "cf2", BEFORE, {"hidden": (128, 128)}),
+    "horizon100": ("1 s rollouts for the actor (100 control steps)", "cf2", BEFORE, {"model_horizon": 100}),
+    "no_bias": ("no position bias in training", "cf2", BEFORE | {"pos_bias": 0.0}),
     "clean": (
         "no position bias or observation noise in training",
         "cf2",
-        {"pos_bias": 0.0, "obs_noise": (0.0, 0.0)},
+        BEFORE | {"pos_bias": 0.0, "obs_noise": (0.0, 0.0)},
     ),
-    "clean_rate0.3": (
-        "clean, the action-rate cost at 0.3",
-        "cf2",
-        {"pos_bias": 0.0, "obs_noise": (0.0, 0.0), "rho_rate": 0.3},
-    ),
-    "clean_rate0.1": (
-        "clean, the action-rate cost at 0.1",
-        "cf2",
-        {"pos_bias": 0.0, "obs_noise": (0.0, 0.0), "rho_rate": 0.1},
-    ),
+    "clean_rate0.1": ("clean, the action-rate cost at 0.1", "cf2", {"rho_rate": 0.1}),
 }
 QUICK = dict(total_transitions=30_000, epochs=2)  # --quick's budget
 
