@@ -13,7 +13,8 @@ action history; without memory (no last action, error integral, integral action 
 no action-rate cost either); either cost alone; the action-rate cost at 0.3 and 0.1; neither;
 128-128 networks; 1 s rollouts for the actor instead of 0.5 s; without the bias, and without the
 noise too ("clean", the action-rate cost at 0.3 on top of which is today's preset); without the
-inner loop in training (``robust``, instant rates). The body-frame observation and the critics'
+inner loop in training (``robust``, instant rates); on today's preset, the action-rate cost at
+0.1, no wind in training, half the vehicle ranges. The body-frame observation and the critics'
 value ending a rollout were variants until they were measured and removed (926f0bb, d8791e4).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
@@ -68,6 +69,18 @@ VARIANTS = {
         BEFORE | {"pos_bias": 0.0, "obs_noise": (0.0, 0.0)},
     ),
     "clean_rate0.1": ("clean, the action-rate cost at 0.1", "cf2", {"rho_rate": 0.1}),
+    "calm": ("no wind in training", "cf2", {"wind_mean": 0.0, "wind_sigma": 0.0}),
+    "tight": (
+        "half the ranges: rotors, rate gains x0.85-1.2, drag x0.75-1.25, inertia x0.9-1.1, mass ±7.5 %",
+        "cf2",
+        {
+            "tau_rate": (0.85, 1.2),
+            "rate_gains": (0.85, 1.2),
+            "drag": (0.75, 1.25),
+            "inertia": (0.9, 1.1),
+            "mass": (0.925, 1.075),
+        },
+    ),
 }
 QUICK = dict(total_transitions=30_000, epochs=2)  # --quick's budget
 
