@@ -44,7 +44,7 @@ TRACKS = ("spiral_rt", *(f"los_rt_seed{s:02d}" for s in range(5)), "circle_r0.5"
 # ±1 cm and observation noise x0-0.75 in training, the action-rate cost at 1.0): the variants
 # measured before the change are changes to that preset, so they are written on top of it here.
 BEFORE = {"pos_bias": 0.01, "obs_noise": (0.0, 0.75), "rho_rate": 1.0}
-# variant -> (description, preset, EnvConfig changes by field name[, TrainConfig changes])
+# variant -> (description, preset, EnvConfig changes by field name[, TrainConfig or Hyper changes])
 VARIANTS = {
     "cf2": ("the cf2 preset", "cf2", {}),
     "before": ("the cf2 preset before (bias ±1 cm, noise, action rate 1.0)", "cf2", BEFORE),
@@ -70,6 +70,13 @@ VARIANTS = {
     ),
     "clean_rate0.1": ("clean, the action-rate cost at 0.1", "cf2", {"rho_rate": 0.1}),
     "calm": ("no wind in training", "cf2", {"wind_mean": 0.0, "wind_sigma": 0.0}),
+    "decay": ("the actor's learning rate falling linearly to 0 over the run", "cf2", {}, {"lr_decay": 1.0}),
+    "decay_lr6e-3": (
+        "the actor's learning rate 6e-3 falling linearly to 0",
+        "cf2",
+        {},
+        {"lr_actor": 6e-3, "lr_decay": 1.0},
+    ),
     "tight": (
         "half the ranges: rotors, rate gains x0.85-1.2, drag x0.75-1.25, inertia x0.9-1.1, mass ±7.5 %",
         "cf2",
@@ -114,7 +121,8 @@ def variant_spec(made: dict):
 
     spec = sp.preset(made["preset"], **made["budget"])
     train = {k: tuple(v) if isinstance(v, list) else v for k, v in made.get("train", {}).items()}
-    return sp.replace(spec, task=spec.task.replace(**task_changes(made)), **train)
+    hp = {k: train.pop(k) for k in list(train) if hasattr(spec.hp, k)}
+    return sp.replace(spec, task=spec.task.replace(**task_changes(made)), hp=spec.hp.replace(**hp), **train)
 
 
 def task_changes(made: dict) -> dict:
