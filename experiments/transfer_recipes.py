@@ -77,6 +77,8 @@ VARIANTS = {
         {},
         {"lr_actor": 6e-3, "lr_decay": 1.0},
     ),
+    "band5mm": ("integral action within 5 mm of the track (not 1 cm)", "cf2", {"ref_integral_band": 0.005}),
+    "gain1.5": ("integral action at half the gain (1.5/s)", "cf2", {"ref_integral_gain": 1.5}),
     "tight": (
         "half the ranges: rotors, rate gains x0.85-1.2, drag x0.75-1.25, inertia x0.9-1.1, mass ±7.5 %",
         "cf2",
