@@ -77,8 +77,18 @@ VARIANTS = {
         {},
         {"lr_actor": 6e-3, "lr_decay": 1.0},
     ),
-    "band5mm": ("integral action within 5 mm of the track (not 1 cm)", "cf2", {"ref_integral_band": 0.005}),
-    "gain1.5": ("integral action at half the gain (1.5/s)", "cf2", {"ref_integral_gain": 1.5}),
+    "decay_lr1e-2": (
+        "the actor's learning rate 1e-2 falling linearly to 0",
+        "cf2",
+        {},
+        {"lr_actor": 1e-2, "lr_decay": 1.0},
+    ),
+    "decay_band5mm": (
+        "the actor's learning rate 6e-3 falling linearly to 0, integral action within 5 mm (not 1 cm)",
+        "cf2",
+        {"ref_integral_band": 0.005},
+        {"lr_actor": 6e-3, "lr_decay": 1.0},
+    ),
     "tight": (
         "half the ranges: rotors, rate gains x0.85-1.2, drag x0.75-1.25, inertia x0.9-1.1, mass ±7.5 %",
         "cf2",
