@@ -37,8 +37,11 @@ def test_every_variant_is_the_preset_plus_valid_changes():
         base = sp.preset(made["preset"], **made["budget"])
         assert spec.task == base.task.replace(**tr.task_changes(made))
         for field, value in made.get("train", {}).items():
-            assert getattr(spec.train, field) == (tuple(value) if isinstance(value, list) else value)
+            where = spec.hp if hasattr(spec.hp, field) else spec.train  # a Hyper or TrainConfig field
+            assert getattr(where, field) == (tuple(value) if isinstance(value, list) else value)
     assert tr.variant_spec(tr.made_with("wide", quick=True)).train.hidden == (128, 128)
+    decay = tr.variant_spec(tr.made_with("decay_lr6e-3", quick=True)).hp
+    assert (decay.lr_actor, decay.lr_decay) == (6e-3, 1.0)
 
 
 def test_a_folder_made_otherwise_is_refused_before_training(tmp_path):
