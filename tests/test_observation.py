@@ -211,3 +211,110 @@ def test_a_bad_reference_integral_is_refused_naming_the_field(field, bad, allowe
 def test_the_reference_integral_needs_the_memory():
     with pytest.raises(ValueError, match=r"observation\.ref_integral_gain must be 0 without obs_memory"):
         make_config("practical", ref_integral_gain=2.0)
+
+
+def hover_flight(steps: int, **changes):
+    """The observed disturbance estimate (observation.disturbance_tau 0.1 s) after each of ``steps``
+    control steps of the hover action of the nominal vehicle, from rest and level without OU
+    wind or noise, on ``make_config("practical")`` with ``changes``; and the episode's plant."""
+    from ttd3_jax.sim.env import hover_action
+
+    cfg = make_config("practical", hover_centered_thrust=True, obs_memory=True, disturbance_tau=0.1,
+                      wind_sigma=0.0, randomize_init=False, track="spiral_rt", **changes)  # fmt: skip
+    env = TrackingEnv(cfg)
+    s, at = env.reset(jax.random.PRNGKey(2)), env.layout.slice("disturbance")
+    step = jax.jit(env.step)
+    seen = [np.asarray(s.obs[at])]
+    for _ in range(steps):
+        s = step(s, hover_action(cfg))
+        seen.append(np.asarray(s.obs[at]))
+    return np.array(seen), getattr(s.pipeline_state, "plant", None), cfg
+
+
+def test_the_disturbance_estimate_finds_the_wind_and_the_weight_the_nominal_model_does_not_know():
+    """observation.disturbance_tau: hovering on the nominal vehicle it stays 0; under a constant
+    wind acceleration w (randomization.wind_mean, drawn per axis) it rises as 1 − e^(−t/τ) to w
+    (the nominal model knows neither); on a vehicle 20 % heavier than the nominal one it finds
+    the thrust deficit g (1/1.2 − 1) along z."""
+    d, _, cfg = hover_flight(50)
+    assert np.max(np.abs(d)) < 1e-5, np.max(np.abs(d))
+    d, plant, cfg = hover_flight(60, wind_mean=0.5)
+    w, keep = np.asarray(plant.wind_mean), cfg.disturbance_keep
+    assert np.all(np.abs(w) > 0.05) and keep == pytest.approx(np.exp(-0.1))  # (dt 10 ms, tau 0.1 s)
+    np.testing.assert_array_equal(d[0], 0.0)  # zeros at reset; the first step's a_meas is its own
+    np.testing.assert_allclose(d[10], (1 - keep**10) * w, rtol=0.02, atol=1e-3)  # one tau: 63 %
+    np.testing.assert_allclose(d[60], w, rtol=0.01, atol=1e-3)  # six: 99.75 %
+    d, plant, cfg = hover_flight(60, mass=(1.2, 1.2))
+    g = cfg.vehicle.quad.gravity
+    assert float(plant.quad.mass) == pytest.approx(1.2 * cfg.vehicle.quad.mass)
+    np.testing.assert_allclose(d[60], [0.0, 0.0, g / 1.2 - g], rtol=0.01, atol=1e-3)
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        dict(hover_centered_thrust=True, mass=(0.8, 1.2), action_history_s=(0.05,), obs_noise_vel=0.05,
+             obs_noise_quat=0.01, quad=QuadParams.create(rate_model="first_order")),
+        dict(ref_integral_gain=3.0, thrust_map_mass=1.3, obs_noise_vel=0.02),
+        dict(hover_centered_thrust=True,
+             quad=QuadParams.create(thrust_units="mass_normalized", thrust_max=20.0)),
+    ],
+    ids=["randomised-history-noise", "nominal-linear-map", "mass-normalised"],
+)  # fmt: skip
+def test_the_disturbance_estimate_is_the_update_policy_json_and_fly_exported_give(extra):
+    """After each control step of a flight with random actions, the observed disturbance equals
+    fly_exported.py's Memory (float32, from policy.json's observation_spec.memory) and the
+    update policy.json's text gives, in float64 from its numbers, from the measured v and q (the
+    observation's, noise included): d = keep d + (1 − keep) ((v − v_prev) / dt − a_nom),
+    a_nom = T(a) / m R(q_prev) e3 − g e3 with the nominal action map's T."""
+    from experiment_scripts import experiment
+
+    from ttd3_jax.interop.policy import memory_spec, observation_spec
+
+    fx = experiment("fly_exported")
+    cfg = make_config("practical", obs_memory=True, disturbance_tau=0.05, **extra)
+    env, lay, mem = TrackingEnv(cfg), observation.layout(cfg), memory_spec(cfg)
+    model, keep, dt = mem["disturbance_model"], mem["disturbance_keep"], mem["dt_s"]
+    assert (
+        keep == pytest.approx(np.exp(-0.01 / 0.05)) and dt == 0.01 and "a_meas - a_nom" in mem["disturbance"]
+    )
+    meta = dict(observation_spec=observation_spec(cfg, env.observation_size), obs_size=env.observation_size)
+    memory, want = fx.Memory(meta), np.zeros(3)
+    s, step = env.reset(jax.random.PRNGKey(4)), jax.jit(env.step)
+    read = lambda s, name: np.asarray(s.obs[lay.slice(name)])  # noqa: E731
+    v_prev, q_prev = read(s, "v").astype(np.float64), read(s, "q").astype(np.float64)
+    memory.see(np.concatenate([read(s, "p"), read(s, "v"), read(s, "q"), np.zeros(3, np.float32)]))
+    actions = np.random.default_rng(0).uniform(-0.6, 0.6, (25, 4)).astype(np.float32)
+    for a in actions:
+        s = step(s, jnp.asarray(a))
+        v, q = read(s, "v").astype(np.float64), read(s, "q").astype(np.float64)
+        hover, lo, hi, a0 = model["thrust_hover_N"], model["thrust_min_N"], model["thrust_max_N"], float(a[0])
+        if model["hover_centered"]:
+            thrust = hover + a0 * ((hi - hover) if a0 >= 0 else (hover - lo))
+        else:
+            thrust = lo + 0.5 * (a0 + 1.0) * (hi - lo)
+        w, x, y, z = q_prev
+        body_z = np.array([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
+        a_nom = thrust / model["mass_kg"] * body_z - np.array([0.0, 0.0, model["gravity_m_s2"]])
+        want = keep * want + (1 - keep) * ((v - v_prev) / dt - a_nom)
+        memory.update(a, read(s, "p"), np.zeros(3), v.astype(np.float32))
+        memory.see(np.concatenate([read(s, "p"), read(s, "v"), read(s, "q"), np.zeros(3, np.float32)]))
+        got = read(s, "disturbance")
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=2e-4)  # float32 against float64
+        np.testing.assert_allclose(memory.disturbance, got, rtol=1e-5, atol=1e-5)
+        v_prev, q_prev = v, q
+    assert np.max(np.abs(want)) > 0.1  # (wind, a mass the nominal model does not know, noise)
+    newton = 1.3 if "thrust_map_mass" in extra else 1.5  # the mass the map assumes, else the vehicle's
+    mass = {"newton": newton, "mass_normalized": 1.0}[cfg.vehicle.quad.thrust_units]
+    assert model["mass_kg"] == pytest.approx(mass)  # (1: the thrust is an acceleration)
+
+
+@pytest.mark.parametrize("bad", [-0.1, 0.005, 11.0, float("nan"), float("inf")])
+def test_a_bad_disturbance_tau_is_refused_naming_the_field(bad):
+    with pytest.raises(
+        ValueError, match=r"^EnvConfig\.observation\.disturbance_tau must be 0 \(off\) or a finite number in "
+        r"\[0\.01, 10\] s, got"
+    ):  # fmt: skip
+        make_config("practical", obs_memory=True, disturbance_tau=bad)
+    with pytest.raises(ValueError, match=r"observation\.disturbance_tau must be 0 without obs_memory"):
+        make_config("practical", disturbance_tau=0.1)
