@@ -90,6 +90,12 @@ VARIANTS = {
         {"ref_integral_band": 0.005},
         {"lr_actor": 6e-3, "lr_decay": 1.0},
     ),
+    "decay_band3mm": (
+        "the actor's learning rate 6e-3 falling linearly to 0, integral action within 3 mm",
+        "cf2",
+        {"ref_integral_band": 0.003},
+        {"lr_actor": 6e-3, "lr_decay": 1.0},
+    ),
     "disturbance": (
         "a disturbance estimate (0.1 s low-pass of the unexplained acceleration) in the observation",
         "cf2",
