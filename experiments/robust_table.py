@@ -6,7 +6,8 @@ checked against its target.
     python experiments/robust_table.py ROBUST_RUN --fast-run FAST_RUN \\
         --nmpc-robustness results/robustness/nmpc.json --robustness-seeds 20
 
-The policies are each seed's policy selected on the validation tracks (``best/``), at their
+The policies are each seed's policy selected on the validation tracks (``best/``; ``--last``:
+each seed's last policy, the newest checkpoint), at their
 run's control rate; the NMPC is the paper preset's, at 1 kHz, as in
 ``experiments/generalization.py`` and ``results/robustness``, flying ROBUST_RUN's vehicle (a
 ``cf2`` run: the ``cf2`` vehicle, its firmware loop in the NMPC's model,
@@ -239,6 +240,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=20,
         help="LOS-RT seeds 1..N of the robustness rows (default 20)",
     )
+    add("--last", action="store_true", help="each seed's last policy (the newest checkpoint) instead of "
+        "the one selected on the validation tracks (best/)")  # fmt: skip
     add("--out", default="results/robust", help="output directory (default results/robust)")
     return ap
 
@@ -258,12 +261,14 @@ def robust_differences(spec: sp.RunSpec) -> list[str]:
     return out
 
 
-def load(ap: argparse.ArgumentParser, flag: str, path: str) -> tuple[str, rundir.LoadedRun]:
+def load(
+    ap: argparse.ArgumentParser, flag: str, path: str, last: bool = False
+) -> tuple[str, rundir.LoadedRun]:
     try:
         path, note = rundir.find_run(path)
         if note:
             print(note)
-        return path, rundir.load_run(path, best=True)
+        return path, rundir.load_run(path, best=not last)
     except (FileNotFoundError, ValueError) as e:
         ap.error(f"{flag} {path!r}: {str(e).splitlines()[0]}")
 
@@ -284,7 +289,7 @@ def check_args(
         saved, why = read_nmpc_file(args.nmpc_robustness, args.robustness_seeds)
         if why:
             ap.error(f"--nmpc-robustness {args.nmpc_robustness}: {why}")
-    args.robust_run, robust = load(ap, "ROBUST_RUN", args.robust_run)
+    args.robust_run, robust = load(ap, "ROBUST_RUN", args.robust_run, args.last)
     if saved is not None:
         if saved["vehicle"] != run_vehicle(robust):
             ap.error(f"--nmpc-robustness {args.nmpc_robustness}: its NMPC flew the {saved['vehicle']} "
@@ -292,7 +297,7 @@ def check_args(
         saved = saved["rows"]
     fast = None
     if args.fast_run is not None:
-        args.fast_run, fast = load(ap, "--fast-run", args.fast_run)
+        args.fast_run, fast = load(ap, "--fast-run", args.fast_run, args.last)
     return robust, fast, saved
 
 
@@ -419,8 +424,9 @@ def table(table_rows: list[dict], labels: list[str]) -> list[str]:
 def run_note(flag: str, path: str, run: rundir.LoadedRun, robust: bool) -> str:
     name = os.path.basename(os.path.normpath(path))
     seeds = [s for s, _ in run.thetas]
-    text = (f"{flag}: `{name}` ({run.spec.algo}, seeds {seeds}, epochs selected on the validation tracks "
-            f"{run.epoch}, {1 / run.env_config.control_dt:g} Hz)")  # fmt: skip
+    which = (f"epochs selected on the validation tracks {run.epoch}" if isinstance(run.epoch, dict)
+             else f"the last epoch's policies (epoch {run.epoch})")  # fmt: skip
+    text = f"{flag}: `{name}` ({run.spec.algo}, seeds {seeds}, {which}, {1 / run.env_config.control_dt:g} Hz)"
     if robust:
         diff = robust_differences(run.spec)
         name = reference_preset(run.spec)
