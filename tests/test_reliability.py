@@ -354,3 +354,23 @@ def test_a_long_user_training_track_counts_in_the_memory_check_and_is_named(tmp_
     named = rf"the track tables \(--task.tracks.train-tracks {re.escape(path)}\)"
     with pytest.raises(ValueError, match=named):
         memory.check(spec, trainer.env.obs_size, trainer.env.action_size, free=big, track_rows=rows)
+
+
+def test_best_keeps_the_lowest_validation_policy_or_with_selection_last_the_newest(tmp_path):
+    from types import SimpleNamespace
+
+    from ttd3_jax.td3.config import TrainConfig
+
+    def epochs(selection: str) -> dict:
+        run_dir = str(tmp_path / selection)
+        train = TrainConfig(selection=selection, normalize_obs=False)
+        spec = SimpleNamespace(seed=3, num_seeds=2, train=train)
+        for epoch, vals in enumerate([(5.0, 2.0), (1.0, 4.0), (3.0, 3.0)], start=1):
+            ts = SimpleNamespace(actor={"w": np.full((2, 1), epoch, np.float32)}, obs_stats=None)
+            rundir.select_best(run_dir, spec, epoch, {"val_tracking_error": np.asarray(vals)}, ts)
+        return {s: r["epoch"] for s, r in ckpt.best_record(run_dir).items()}
+
+    assert epochs("validation") == {3: 2, 4: 1}  # the lowest validation error per seed
+    assert epochs("last") == {3: 3, 4: 3}
+    with pytest.raises(ValueError, match="selection"):
+        TrainConfig(selection="best")

@@ -292,8 +292,7 @@ def _train(r: _Run, t: float, stop_after: int | None, checkpoint_every: int) -> 
     ev = ev if ev is not None else jax.device_get(eval_c(ts))
     summary = _finish(run_dir, spec, ev, compile_s=lowered + stages.compile_s, run_s=run_s, stages=stages)
     status.mark(run_dir, "finished", epoch=last)
-    extra = ", best/ (the policy selected on the validation tracks)" if spec.is_quadrotor else ""
-    log(f"results in {run_dir}: metrics.csv, eval.json, learning_curve.png, checkpoints/{extra}")
+    log(f"results in {run_dir}: metrics.csv, eval.json, learning_curve.png, checkpoints/{best_note(spec)}")
     return summary
 
 
@@ -474,6 +473,18 @@ def _epochs(loop: EpochLoop, ts, start: int, last: int):
     return ts, ev, run_s, timings
 
 
+def best_note(spec: sp.RunSpec) -> str:
+    """What the run keeps in best/, for its last line."""
+    if not spec.is_quadrotor:
+        return ""
+    last = spec.train.selection == "last"
+    return (
+        ", best/ ("
+        + ("each seed's last policy" if last else "the policy selected on the validation tracks")
+        + ")"
+    )
+
+
 def _finish(run_dir: str, spec: sp.RunSpec, ev, *, compile_s: float, run_s: float, stages: Stages) -> dict:
     seed_evals = [{k: float(np.asarray(v)[i]) for k, v in ev.items()} for i in range(spec.num_seeds)]
     seeds = list(range(spec.seed, spec.seed + spec.num_seeds))
@@ -483,7 +494,7 @@ def _finish(run_dir: str, spec: sp.RunSpec, ev, *, compile_s: float, run_s: floa
     if spec.is_quadrotor:
         summary["paper_ttd3"] = PAPER_TTD3
         summary["beats_paper"] = [beats_paper(s) for s in seed_evals]
-        # the policy chosen on the validation tracks (best/; evaluate it with --best)
+        # the policy chosen on the validation tracks, or the last (best/; evaluate it with --best)
         summary["selected"] = rundir.selected_policies(run_dir)
         summary["selected_beats_paper"] = [beats_paper(s) for s in summary["selected"]]
     with open(os.path.join(run_dir, "eval.json"), "w") as fh:

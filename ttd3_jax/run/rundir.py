@@ -168,11 +168,12 @@ def improves_selection(record: dict, seed: int, value: float) -> bool:
 
 def select_best(run_dir: str, spec: sp.RunSpec, epoch: int, ev, ts) -> None:
     """Keep each seed's policy with the lowest validation error so far (spec T8: selection
-    on the 10 validation tracks, never on the test tracks) in ``run_dir/best/``."""
-    record = ckpt.best_record(run_dir)
+    on the 10 validation tracks, never on the test tracks) in ``run_dir/best/``; with
+    ``train.selection = "last"``, its newest policy."""
+    record, last = ckpt.best_record(run_dir), spec.train.selection == "last"
     for i in range(spec.num_seeds):
         seed, v = spec.seed + i, float(np.asarray(ev["val_tracking_error"])[i])
-        if improves_selection(record, seed, v):
+        if last or improves_selection(record, seed, v):
             actor, stats = jax.device_get((ts.actor, ts.obs_stats))  # sliced on the host: nothing compiles
             stats = index(stats, i) if spec.train.normalize_obs else None
             ckpt.save_policy(run_dir, seed, epoch, v, {"actor": index(actor, i), "obs_stats": stats})

@@ -196,13 +196,9 @@ def preset(name: str, **changes) -> RunSpec:
         if name == "robust":
             base = RunSpec(train=train, hp=hp, task=task.replace(**ROBUST_TASK), num_seeds=3)
         if name == "cf2":  # twice the transitions; the actor's lr 6e-3 falling to 0 (its last policy)
-            train = dataclasses.replace(train, total_transitions=3_200_000, epochs=20)
-            base = RunSpec(
-                train=train,
-                hp=hp.replace(lr_actor=6e-3, lr_decay=1.0),
-                task=task.replace(**CF2_TASK),
-                num_seeds=3,
-            )
+            train = dataclasses.replace(train, total_transitions=3_200_000, epochs=20, selection="last")
+            hp = hp.replace(lr_actor=6e-3, lr_decay=1.0)
+            base = RunSpec(train=train, hp=hp, task=task.replace(**CF2_TASK), num_seeds=3)
     elif name == "mujoco":
         train = TrainConfig(num_envs=1, total_transitions=1_000_000, warmup_transitions=25_000,
                             buffer_size=1_000_000, updates_per_step=1, epochs=200)  # fmt: skip

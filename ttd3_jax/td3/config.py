@@ -16,6 +16,7 @@ from ttd3_jax.td3.networks import CRITIC_ARCHS
 
 ALGOS = ("ttd3", "td3")
 TARGET_NOISES = ("fixed", "shared_sigma")
+SELECTIONS = ("validation", "last")  # which policy a quadrotor run keeps in best/
 MAX_TRANSITIONS = 2_000_000_000  # the transition counter is int32
 
 
@@ -109,6 +110,9 @@ class TrainConfig:
     # critic targets from n-step returns (not in the paper; FastTD3 uses 3), each cut where its
     # episode ended and bootstrapped through truncation; 1 is TD3's one-step target
     n_step: int = 1
+    # which policy of each seed best/ keeps (quadrotor): "validation", the one with the lowest
+    # validation error so far (spec T8); "last", the newest (a run whose lr falls to 0 ends there)
+    selection: Annotated[str, Suppress] = "validation"
 
     def __post_init__(self):
         _validate(self)
@@ -170,7 +174,8 @@ class TrainConfig:
 
 def _validate(c: TrainConfig) -> None:
     """Raise ``ValueError`` naming the bad field; runs before anything is compiled."""
-    for name, allowed in (("algo", ALGOS), ("critic_arch", CRITIC_ARCHS), ("target_noise", TARGET_NOISES)):
+    for name, allowed in (("algo", ALGOS), ("critic_arch", CRITIC_ARCHS), ("target_noise", TARGET_NOISES),
+                          ("selection", SELECTIONS)):  # fmt: skip
         checks.one_of(name, getattr(c, name), allowed)
     for name in ("num_envs", "total_transitions", "buffer_size", "batch_size", "policy_delay", "epochs"):
         checks.integer(name, getattr(c, name), 1, MAX_TRANSITIONS)
