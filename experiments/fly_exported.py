@@ -6,11 +6,11 @@ vehicle.  It imports nothing from ``ttd3_jax``: only NumPy, onnxruntime (``pip i
 
 It builds every observation part of the ``fast``, ``fast_dpg``, ``paper`` and ``robust``
 presets from ``policy.json`` (:func:`observe`, :class:`Memory`): p, v, q, p_ahead,
-p_ahead_error, error, omega (body rates), the memory parts last_action, error_integral,
-action_history and disturbance, the preview of the reference (``preview_s``) and the
-reference integral's shift; and it simulates the ``instant`` and ``first_order`` rate models
-of the nominal vehicle.  A policy that reads anything else (a vehicle descriptor) or flies
-another rate model is refused, naming it.  Prints Σ‖e‖ per track against ``expected_tracking_error``.
+p_ahead_error, error, omega (body rates), the memory parts last_action and error_integral,
+the preview of the reference (``preview_s``) and the reference integral's shift; and it
+simulates the ``instant`` and ``first_order`` rate models of the nominal vehicle.  A policy
+that reads anything else (a vehicle descriptor) or flies another rate model is refused,
+naming it.  Prints Σ‖e‖ per track against ``expected_tracking_error``.
 ``experiments/transfer_crazyflow.py`` builds its observation with the same functions.
 
     python -m ttd3_jax.export RUN_DIR --out POLICY_DIR
@@ -30,7 +30,7 @@ import numpy as np
 TRACKS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "tracks", "protocol")
 # the parts this script builds, and the preview's (``preview_{t:g}s``, one per time of preview_s)
 PARTS = ("p", "v", "q", "p_ahead", "p_ahead_error", "error", "omega", "last_action", "error_integral",
-         "action_history", "disturbance")  # fmt: skip
+         "action_history")  # fmt: skip
 PREVIEW = "preview_"
 RATE_MODELS = ("instant", "first_order")
 
@@ -101,10 +101,8 @@ def rk4(meta: dict, x: np.ndarray, c, w_cmd: np.ndarray) -> np.ndarray:
 
 class Memory:
     """What the observation keeps from step to step (``observation_spec.memory``): the last
-    action (4), the leaky error integral (3, m s), the reference integral (3, m s), the action
-    history and the disturbance estimate (3, m/s²), all zero at the start of a flight, and the
-    velocity and attitude measured at the last control step (:meth:`see`, which :func:`observe`
-    calls).  ``dtype``: the precision it is kept in (the env's float32)."""
+    action (4), the leaky error integral (3, m s) and the reference integral (3, m s), all
+    zero at the start of a flight.  ``dtype``: the precision it is kept in (the env's float32)."""
 
     def __init__(self, meta: dict, dtype=np.float32):
         self.spec = meta["observation_spec"].get("memory") or {}
@@ -114,19 +112,10 @@ class Memory:
         self.ref_int = np.zeros(3, dtype)
         self.keep = np.asarray(self.spec.get("action_history_keep", []), dtype)[:, None]
         self.action_history = np.zeros((len(self.keep), 4), dtype)
-        self.model = self.spec.get("disturbance_model") or {}
-        self.disturbance = np.zeros(3, dtype)
-        self.v_prev, self.q_prev = np.zeros(3, dtype), np.array([1, 0, 0, 0], dtype)
 
-    def see(self, x: np.ndarray) -> None:
-        """At each control step, after :meth:`update`: keep the measured v and q of ``x`` (p, v, q,
-        ω), from which the next step's disturbance estimate starts."""
-        self.v_prev, self.q_prev = np.array(x[3:6], self.v_prev.dtype), np.array(x[6:10], self.q_prev.dtype)
-
-    def update(self, action: np.ndarray, p: np.ndarray, p_d: np.ndarray, v: np.ndarray | None = None) -> None:
+    def update(self, action: np.ndarray, p: np.ndarray, p_d: np.ndarray) -> None:
         """After a control step: ``action`` the one it applied (clipped to [-1, 1]), ``p`` the
-        measured position (m) and ``p_d`` the reference at the step's end; ``v`` the measured
-        velocity (m/s), needed by a disturbance estimate."""
+        measured position (m) and ``p_d`` the reference at the step's end."""
         f = self.error_integral.dtype.type
         self.last_action = np.clip(action, -1.0, 1.0).astype(self.last_action.dtype)
         f1 = self.keep.dtype.type(1)
@@ -138,25 +127,6 @@ class Memory:
         self.error_integral = f(self.spec["leak"]) * self.error_integral + dt * e
         if self.integral:  # only within the band: no wind-up far off the track
             self.ref_int = self.ref_int + dt * np.where(np.abs(e) < f(self.integral["band_m"]), e, f(0))
-        if self.model:
-            if v is None:
-                raise ValueError("Memory.update: this policy's disturbance estimate needs the measured v")
-            e = (np.asarray(v, f) - self.v_prev) / dt - self.nominal_acceleration()
-            keep = f(self.spec["disturbance_keep"])
-            self.disturbance = keep * self.disturbance + (f(1) - keep) * np.where(np.isfinite(e), e, f(0))
-
-    def nominal_acceleration(self) -> np.ndarray:
-        """The nominal model's acceleration (3,) m/s² for the last action at the attitude measured
-        when it was chosen (``disturbance_model``): T / m R(q_prev) e3 - g e3."""
-        m, f = self.model, self.disturbance.dtype.type
-        lo, hover, hi, a0 = m["thrust_min_N"], m["thrust_hover_N"], m["thrust_max_N"], self.last_action[0]
-        if m["hover_centered"]:
-            thrust = f(hover) + a0 * (f(hi - hover) if a0 >= 0 else f(hover - lo))
-        else:
-            thrust = f(lo) + f(0.5) * (a0 + f(1)) * f(hi - lo)
-        c, (w, x, y, z), two = thrust / f(m["mass_kg"]), self.q_prev, f(2)
-        body_z = [two * (x * z + w * y), two * (y * z - w * x), f(1) - two * (x * x + y * y)]
-        return np.array([c * body_z[0], c * body_z[1], c * body_z[2] - f(m["gravity_m_s2"])], f)
 
     def shift(self) -> np.ndarray:
         """s (3,) m: the reference integral's shift of the observed reference (0 without one)."""
@@ -186,11 +156,10 @@ def observe(meta: dict, x: np.ndarray, ref: np.ndarray, k: int, memory: Memory |
     parts = {"p": p - origin, "v": v, "q": q, "p_ahead": ahead - origin, "p_ahead_error": ahead - p,
              "error": [np.linalg.norm(p_err - p)], "omega": w, "last_action": memory.last_action,
              "error_integral": memory.error_integral,
-             "action_history": memory.action_history.ravel(), "disturbance": memory.disturbance}  # fmt: skip
+             "action_history": memory.action_history.ravel()}  # fmt: skip
     dt = meta["evaluation_protocol"]["physics_dt_s"]
     for t in spec.get("preview_s", []):  # the reference t s after p_ahead, relative to it
         parts[f"{PREVIEW}{t:g}s"] = reference(ref, k + look + round(t / dt)) - ahead
-    memory.see(x)  # (the v and q the next step's disturbance estimate starts from)
     read = [part["name"] for part in spec["parts"] if not part.get("critic_only", False)]
     return np.concatenate([np.asarray(parts[name], x.dtype) for name in read])
 
@@ -207,7 +176,7 @@ def fly(meta: dict, session, ref: np.ndarray, dtype=np.float32) -> dict:
     for k in range(proto["physics_steps"]):
         if k % meta["action_repeat"] == 0:
             if k > 0:  # the control step that ended here: the memory parts
-                memory.update(a, x[0:3], ref[k], x[3:6])
+                memory.update(a, x[0:3], ref[k])
             obs = observe(meta, x, ref, k, memory)[None].astype(np.float32)
             a = np.clip(session.run(["action"], {"obs": obs})[0][0], -1.0, 1.0)
             thrust, w_cmd = action_to_control(meta, a)

@@ -366,7 +366,7 @@ def policy_actor(meta: dict, session, ref: np.ndarray, thrust_scale: float):
 
     def act(x, k):
         if k > 0:  # the control step that ended at k
-            memory.update(last["a"], x[0:3], ref[k], x[3:6])
+            memory.update(last["a"], x[0:3], ref[k])
         obs = fx.observe(meta, x, ref, k, memory)[None].astype(np.float32)
         a = np.clip(session.run(["action"], {"obs": obs})[0][0], -1.0, 1.0)
         last["a"] = a

@@ -14,9 +14,9 @@ no action-rate cost either); either cost alone; the action-rate cost at 0.3 and 
 128-128 networks; 1 s rollouts for the actor instead of 0.5 s; without the bias, and without the
 noise too ("clean", the action-rate cost at 0.3 on top of which is today's preset); without the
 inner loop in training (``robust``, instant rates); on today's preset, the action-rate cost at
-0.1, no wind in training, half the vehicle ranges, a disturbance estimate in the observation
-(issue 50). The body-frame observation and the critics' value ending a rollout were variants
-until they were measured and removed (926f0bb, d8791e4).
+0.1, no wind in training, half the vehicle ranges. The body-frame observation, the critics'
+value ending a rollout and a disturbance estimate in the observation were variants until they
+were measured and removed (926f0bb, d8791e4, aef5b75).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
     python experiments/transfer_recipes.py --out DIR --variants cf2 action_rate     # some
@@ -95,11 +95,6 @@ VARIANTS = {
         "cf2",
         {"ref_integral_band": 0.003},
         {"lr_actor": 6e-3, "lr_decay": 1.0},
-    ),
-    "disturbance": (
-        "a disturbance estimate (0.1 s low-pass of the unexplained acceleration) in the observation",
-        "cf2",
-        {"disturbance_tau": 0.1},
     ),
     "tight": (
         "half the ranges: rotors, rate gains x0.85-1.2, drag x0.75-1.25, inertia x0.9-1.1, mass ±7.5 %",

@@ -132,43 +132,6 @@ def test_a_numpy_reimplementation_from_policy_json_reproduces_eval_json(exported
     assert "no such file" in capsys.readouterr().err
 
 
-@pytest.fixture(scope="module")
-def exported_disturbance(tmp_path_factory):
-    """A tiny run whose policy reads the disturbance estimate (and the memory it needs), exported."""
-    root = tmp_path_factory.mktemp("export_disturbance")
-    task = sp.preset("fast_dpg").task.replace(obs_memory=True, disturbance_tau=0.1)
-    run_dir = run(tiny(task=task), out=str(root / "runs"), verbose=False)["run_dir"]
-    assert export_main([run_dir, "--out", str(root / "policy")]) == 0
-    return run_dir, str(root / "policy")
-
-
-def test_a_policy_reading_the_disturbance_estimate_flies_outside_jax(exported_disturbance, tmp_path, capsys):
-    """observation.disturbance_tau: policy.json names the part and the numbers of its update,
-    policy.h's ttd3_step keeps it as the run's env does (its observation and the JAX actor's
-    action at every step), and fly_exported.py reproduces eval.json from policy.json alone."""
-    run_dir, out = exported_disturbance
-    meta = json.load(open(os.path.join(out, "policy.json")))
-    assert "disturbance" in [p["name"] for p in meta["observation_spec"]["parts"]]
-    mem, api = meta["observation_spec"]["memory"], meta["c_api"]
-    assert mem["disturbance_keep"] == pytest.approx(np.exp(-0.1)) == api["memory"]["disturbance_keep"]
-    assert (
-        mem["disturbance_model"]["mass_kg"] == pytest.approx(1.5)
-        and mem["disturbance_model"]["hover_centered"]
-    )
-    assert api["state"] == ["last_action", "error_integral", "disturbance", "v_prev", "q_prev"]
-    loaded, policy = jax_policy(run_dir)
-    if shutil.which("cc"):
-        header = open(os.path.join(out, "policy.h")).read()
-        fly_against_c(
-            loaded.env_config, api, header, lambda obs: policy(jnp.asarray(obs)), tmp_path, steps=100
-        )
-    assert experiment("fly_exported").main([out, "--tracks", "spiral_rt", "los_rt_seed00"]) == 0
-    rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()[1:]}
-    want = json.load(open(os.path.join(run_dir, "eval.json")))["final_eval"][0]
-    for name, key in (("spiral_rt", "spiral_tracking_error"), ("los_rt_seed00", "los_tracking_error")):
-        assert float(rows[name][1]) == pytest.approx(want[key], rel=1e-4), name
-
-
 def test_the_sidecar_says_what_the_policy_reads_and_writes(exported):
     run_dir, out = exported
     meta = json.load(open(os.path.join(out, "policy.json")))

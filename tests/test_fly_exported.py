@@ -30,17 +30,17 @@ def sidecar(cfg, size: int) -> dict:
 
 def test_every_part_is_rebuilt_from_policy_json_along_a_flight():
     """A first_order vehicle (the omega part) with the robust preset's memory, preview and
-    reference integral, an action history and a disturbance estimate, flown with random actions:
-    the NumPy observation of each visited state (and the memory kept by ``Memory``) equals the
-    env's to float32 rounding."""
+    reference integral and an action history, flown with random actions: the NumPy observation
+    of each visited state (and the memory kept by ``Memory``) equals the env's to float32
+    rounding."""
     cfg = make_config("practical", hover_centered_thrust=True, obs_memory=True, preview_s=(0.1, 0.5, 1.0),
                       ref_integral_gain=3.0, ref_integral_band=0.2, action_history_s=(0.05, 0.2),
-                      disturbance_tau=0.05).for_eval("spiral_rt")  # fmt: skip
+                      ).for_eval("spiral_rt")  # fmt: skip
     cfg = cfg.replace(quad=cfg.vehicle.quad.replace(rate_model="first_order"))
     env = TrackingEnv(cfg)
     meta = sidecar(cfg, env.observation_size)
     parts = {p["name"] for p in meta["observation_spec"]["parts"]}
-    assert parts >= {"omega", "last_action", "preview_1s", "action_history", "disturbance"}
+    assert parts >= {"omega", "last_action", "preview_1s", "action_history"}
     assert fx.check_observation(meta) is None
     state = env.reset(jax.random.PRNGKey(0))  # Spiral-RT, from rest on its first point
     ref = np.asarray(jax.vmap(lambda k: tr.position(state.pipeline_state.track, k, cfg.dt))(jnp.arange(5000)))
@@ -51,13 +51,12 @@ def test_every_part_is_rebuilt_from_policy_json_along_a_flight():
         ps = state.pipeline_state
         quad, k = jax.device_get(ps.quad), int(ps.k)
         if i:
-            memory.update(actions[i - 1], quad.p, ref[k], quad.v)
+            memory.update(actions[i - 1], quad.p, ref[k])
         x = np.concatenate([quad.p, quad.v, quad.q, quad.w]).astype(np.float32)
         got = fx.observe(meta, x, ref, k, memory)
         worst = max(worst, float(np.max(np.abs(got - np.asarray(state.obs)))))
         state = step(state, jnp.asarray(a))
     assert np.abs(memory.shift()).max() > 0  # the reference integral was exercised
-    assert np.abs(memory.disturbance).max() > 1e-3  # (the attitude turns within a step: a_nom is its start's)
     assert worst < 1e-5, worst
 
 

@@ -234,14 +234,6 @@ STATEFUL = {  # memory, preview and reference integral (robust, cf2: omega); and
         "practical", hover_centered_thrust=True, vehicles=TWO, obs_memory=True, preview_s=(0.2,),
         obs_frame="world", err_ref="next", canonical_q_obs=False, ref_integral_gain=3.0,
         ref_integral_band=0.05, ref_integral_limit=1e-4),
-    # the disturbance estimate: cf2's (hover-centred map, firmware, drag), with the two vehicles'
-    # maps, and on the linear map of a mass the map assumes, with velocity and attitude noise
-    "cf2_disturbance": lambda: sp.preset("cf2").task.replace(disturbance_tau=0.1),
-    "two_vehicles_disturbance": lambda: STATEFUL["two_vehicles_world"]().replace(disturbance_tau=0.05),
-    "linear_disturbance": lambda: make_config(
-        "practical", obs_memory=True, preview_s=(0.2,), ref_integral_gain=3.0, ref_integral_band=0.05,
-        ref_integral_limit=0.1, disturbance_tau=0.05, thrust_map_mass=1.3, obs_noise_vel=0.05,
-        obs_noise_quat=0.005),
 }  # fmt: skip
 
 
@@ -255,8 +247,7 @@ def test_ttd3_step_builds_the_envs_observation_and_keeps_its_state_step_after_st
     policy = tracking_policy(flown)
     header = ch.c_header(policy, "test", vehicles, api)
     history = ["action_history"] if cfg.observation.action_history_s else []
-    disturbance = ["disturbance", "v_prev", "q_prev"] if cfg.observation.disturbance_tau else []
-    assert api["state"] == ["last_action", "error_integral", "ref_int", *history, *disturbance]
+    assert api["state"] == ["last_action", "error_integral", "ref_int", *history]
     assert ("omega" in api["parts"]) == name.startswith("cf2") and "float ref_int[3];" in header
     state = fly_against_c(flown, api, header, lambda o: pe.forward(policy, o), tmp_path,
                           vehicle=TWO[1] if vehicles else None)  # fmt: skip
@@ -265,13 +256,10 @@ def test_ttd3_step_builds_the_envs_observation_and_keeps_its_state_step_after_st
     if history:  # it kept the history (the observation and the action checked it at every step)
         size = 4 * len(cfg.observation.action_history_s)
         assert f"float action_history[{size}];" in header and np.all(np.asarray(ps.act_hist) != 0)
-    if disturbance:  # it kept the estimate (checked by the observation and the action at every step)
-        assert "float disturbance[3];" in header and np.all(np.asarray(ps.dist) != 0)
-        assert "ttd3_disturbance(s, v, q);" in header
     o, ref_int = cfg.observation, np.asarray(ps.ref_int)
     assert np.any(ref_int != 0)  # it integrated within the band; the last config's shift at its limit
     assert np.any(o.ref_integral_gain * np.abs(ref_int) > o.ref_integral_limit) == (
-        name.startswith("two_vehicles")
+        name == "two_vehicles_world"
     )
     e = np.linalg.norm(np.asarray(ps.quad.p) - np.asarray(tr.position(ps.track, ps.k, cfg.dt)))
     assert e < 1.0, e  # near the track

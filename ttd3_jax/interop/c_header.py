@@ -111,13 +111,10 @@ C_STATE = dict(last_action=(4, "the action of the last control step, clipped to 
                error_integral=(3, "leaky integral of p_d,k - p (m s)"),
                ref_int=(3, "integral of p_d,k - p within the band (m s): shifts the reference"),
                action_history=(None, "leaky averages of the applied action, 4 per time constant"),
-               disturbance=(3, "low-passed acceleration the nominal model does not explain (m/s^2)"),
-               v_prev=(3, "the velocity measured at the last control step (m/s)"),
-               q_prev=(4, "the attitude measured at the last control step"),
                )  # fmt: skip
 # the observation parts ttd3_observe builds besides the preview (c_api refuses any other)
 C_PARTS = ("p", "v", "q", "p_ahead", "p_ahead_error", "error", "omega", "last_action", "error_integral",
-           "action_history", "disturbance", "vehicle")  # fmt: skip
+           "action_history", "vehicle")  # fmt: skip
 
 
 C_HELPERS = """
@@ -179,8 +176,7 @@ def _c_entry(name: str, api: dict) -> str:
     return dict(p="pos[i]" + now, v="v[i]", q=q, p_ahead="ahead[i]" + now, p_ahead_error="ahead[i] - pos[i]",
                 error="ttd3_distance(ref + 3 * TTD3_REF_ERROR, pos)", omega="omega[i]",
                 last_action="s->last_action[i]", error_integral="s->error_integral[i]",
-                action_history="s->action_history[i]", disturbance="s->disturbance[i]",
-                vehicle="s->vehicle[i]")[name]  # fmt: skip
+                action_history="s->action_history[i]", vehicle="s->vehicle[i]")[name]  # fmt: skip
 
 
 def _c_constants(api: dict) -> list[str]:
@@ -207,65 +203,7 @@ def _c_constants(api: dict) -> list[str]:
         keeps = ", ".join(map(c_float, hist))
         out += [f"#define TTD3_ACTION_HISTORY_SIZE {4 * len(hist)}",
                 f"static const float ttd3_action_history_keep[{len(hist)}] = {{{keeps}}};"]  # fmt: skip
-    model = mem.get("disturbance_model") if mem else None
-    if model:
-        t = model
-        out += [f"#define TTD3_DISTURBANCE_KEEP {c_float(mem['disturbance_keep'])}",
-                f"#define TTD3_GRAVITY {c_float(t['gravity_m_s2'])}",
-                f"#define TTD3_NOMINAL_MASS_KG {c_float(t['mass_kg'])}",
-                f"#define TTD3_THRUST_MIN_N {c_float(t['thrust_min_N'])}",
-                f"#define TTD3_THRUST_HOVER_N {c_float(t['thrust_hover_N'])}",
-                f"#define TTD3_THRUST_UP_N {c_float(t['thrust_max_N'] - t['thrust_hover_N'])}",
-                f"#define TTD3_THRUST_DOWN_N {c_float(t['thrust_hover_N'] - t['thrust_min_N'])}",
-                f"#define TTD3_THRUST_SPAN_N {c_float(t['thrust_max_N'] - t['thrust_min_N'])}"]  # fmt: skip
     return out
-
-
-C_DISTURBANCE = """
-/* After a control step (policy.json: observation_spec.memory.disturbance): the measured acceleration
-   (v - v_prev) / dt less the nominal model's for the applied action at the attitude q_prev measured
-   when it was chosen, low-passed; then the measured v and q kept for the next step */
-static inline void ttd3_disturbance(ttd3_state *s, const float v[3], const float q[4]) {
-  int i;
-  if (s->observed) {
-    const float *r = s->q_prev;
-%s
-    const float a_nom[3] = {c * (2.0f * (r[1] * r[3] + r[0] * r[2])),
-                            c * (2.0f * (r[2] * r[3] - r[0] * r[1])),
-                            c * (1.0f - 2.0f * (r[1] * r[1] + r[2] * r[2])) - TTD3_GRAVITY};
-    for (i = 0; i < 3; ++i) {
-      float e = (v[i] - s->v_prev[i]) / TTD3_CONTROL_DT_S - a_nom[i];
-      if (!isfinite(e)) e = 0.0f;
-      s->disturbance[i] = TTD3_DISTURBANCE_KEEP * s->disturbance[i] + (1.0f - TTD3_DISTURBANCE_KEEP) * e;
-    }
-  }
-  for (i = 0; i < 3; ++i) s->v_prev[i] = v[i];
-  for (i = 0; i < 4; ++i) s->q_prev[i] = q[i];
-}"""
-# c, the nominal collective acceleration (m/s^2) of the applied action, per kind of action map
-C_NOMINAL = dict(
-    vehicles="""\
-    float control[4], c;  /* the flown vehicle's action map; its mass: its hover thrust / g */
-    ttd3_action_to_control(s->vehicle, s->last_action, control);
-    c = control[0] / (s->vehicle[TTD3_VEHICLE_DESCRIPTOR_SIZE + 1] / TTD3_GRAVITY);""",
-    hover_centered="""\
-    const float a0 = s->last_action[0];
-    const float c = (a0 >= 0.0f ? TTD3_THRUST_HOVER_N + a0 * TTD3_THRUST_UP_N
-                                : TTD3_THRUST_HOVER_N + a0 * TTD3_THRUST_DOWN_N) / TTD3_NOMINAL_MASS_KG;""",
-    linear="""\
-    const float a0 = s->last_action[0];
-    const float c = (TTD3_THRUST_MIN_N + 0.5f * (a0 + 1.0f) * TTD3_THRUST_SPAN_N) / TTD3_NOMINAL_MASS_KG;""",
-)
-
-
-def _c_disturbance(api: dict, vehicles: dict | None) -> list[str]:
-    """``ttd3_disturbance`` (with ``disturbance`` in the state), with the nominal thrust of the
-    flown vehicle's action map, or of the one ``c_api``'s ``disturbance_model`` gives."""
-    if "disturbance" not in api["state"]:
-        return []
-    hover_centered = api["memory"]["disturbance_model"]["hover_centered"]
-    kind = "vehicles" if vehicles else ("hover_centered" if hover_centered else "linear")
-    return (C_DISTURBANCE % C_NOMINAL[kind]).splitlines()
 
 
 def _c_remember(api: dict) -> str:
@@ -305,18 +243,14 @@ def c_state(api: dict, vehicles: dict | None) -> list[str]:
     out += ["typedef struct {", *(members or ["  int unused;  /* this policy keeps nothing */"]),
             "} ttd3_state;", *C_HELPERS.splitlines(), "", "/* At the start of a flight */",
             "static inline void ttd3_reset(ttd3_state *s) {", *(["  int i;"] if keep else []),
-            *(reset or ["  s->unused = 0;"]), "}", *_c_disturbance(api, vehicles), *C_OBSERVE.splitlines(),
+            *(reset or ["  s->unused = 0;"]), "}", *C_OBSERVE.splitlines(),
             *(["  const float *now = ref + 3 * TTD3_REF_NOW;  /* p_d,k */"] if "now" in refs else []),
             "  const float *ahead = ref + 3 * TTD3_REF_AHEAD;  /* p_d,k+L */",
             f"  float pos[3];  /* the measured p{shift} */", "  int i;"]  # fmt: skip
     if mem:
         out += C_INTEGRATE.splitlines()
         out += C_REF_INT.splitlines() if ri else ["    }", "    pos[i] = p[i];"]
-        out += [
-            "  }",
-            *(["  ttd3_disturbance(s, v, q);"] if "disturbance" in keep else []),
-            "  s->observed = 1;",
-        ]
+        out += ["  }", "  s->observed = 1;"]
     else:
         out += ["  for (i = 0; i < 3; ++i) pos[i] = p[i];", *([] if keep or vehicles else ["  (void)s;"])]
     out += [] if "omega" in api["parts"] else ["  (void)omega;"]

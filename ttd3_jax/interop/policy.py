@@ -123,11 +123,9 @@ def c_api(cfg: EnvConfig) -> dict:
         {name: o.lookahead_k + round(t / cfg.dt) for name, t in zip(previews, o.preview_s, strict=True)}
     )
     kept = (("last_action", o.obs_memory), ("error_integral", o.obs_memory),
-            ("ref_int", o.ref_integral_gain > 0), ("action_history", bool(o.action_history_s)),
-            *((n, o.disturbance_tau > 0) for n in ("disturbance", "v_prev", "q_prev")))  # fmt: skip
+            ("ref_int", o.ref_integral_gain > 0), ("action_history", bool(o.action_history_s)))  # fmt: skip
     state = [n for n, on in kept if on]
     m, ri = memory_spec(cfg), reference_integral_spec(cfg)
-    numbers = ("leak", "dt_s", "action_history_keep", "disturbance_keep", "disturbance_model")
     return dict(
         call_order=c_call_order(cfg, state, any(part.name == "omega" for part in parts)),
         state=state,
@@ -138,7 +136,7 @@ def c_api(cfg: EnvConfig) -> dict:
         frame=o.obs_frame,
         error_reference="now" if o.err_ref == "current" else ("next" if "next" in refs else "ahead"),
         canonical_q=o.canonical_q_obs,
-        memory={k: m[k] for k in numbers if k in m} if o.obs_memory else None,
+        memory={k: m[k] for k in ("leak", "dt_s", "action_history_keep") if k in m} if o.obs_memory else None,
         reference_integral={k: ri[k] for k in ("gain_per_s", "band_m", "limit_m")}
         if o.ref_integral_gain > 0
         else None,
@@ -150,8 +148,6 @@ def c_call_order(cfg: EnvConfig, state: list[str], omega: bool) -> list[str]:
     kept = f"keeps {', '.join(state)} between control steps" if state else "keeps nothing between steps"
     r, dt = cfg.action_repeat, cfg.dt
     vehicle = ["  s.vehicle = TTD3_VEHICLE_<NAME>;  the vehicle flown (ttd3_reset: the first one's)"]
-    observe = "  ttd3_observe(&s, p, v, q, omega, ref, obs);  updates the state with the measured "
-    measured = "p, v, q" if "disturbance" in state else "p"  # (v, q: the disturbance estimate)
     return [
         f"Flying it: one call per control step, every {r} physics steps of {dt:g} s ({r * dt * 1e3:g} ms).",
         f"This policy {kept} (ttd3_state).",
@@ -169,7 +165,7 @@ def c_call_order(cfg: EnvConfig, state: list[str], omega: bool) -> list[str]:
         "p (m), v (m/s): measured, world frame; q = (qw, qx, qy, qz): measured, body to world, either sign;",
         "omega (rad/s): body rates, body frame" + ("." if omega else " (unread by this policy: NULL)."),
         "ttd3_step makes these three calls; make them instead to apply an action other than the policy's:",
-        observe + f"{measured} (not in the",
+        "  ttd3_observe(&s, p, v, q, omega, ref, obs);  updates the state with the measured p (not in the",
         "                                               first call after ttd3_reset), then fills obs",
         "  ttd3_policy_forward(obs, action);",
         "  ttd3_remember(&s, applied);  the action applied until the next step (clipped to [-1, 1])",
@@ -307,34 +303,7 @@ def memory_spec(cfg: EnvConfig) -> dict:
             ),
             action_history_keep=keep,
         )
-    if cfg.observation.disturbance_tau > 0:
-        out.update(disturbance_spec(cfg))
     return out
-
-
-def disturbance_spec(cfg: EnvConfig) -> dict:
-    """How a deployment keeps the disturbance estimate (``observation.disturbance_tau``): the
-    update's text, its keep factor and the nominal model's numbers (``disturbance_model``)."""
-    lo, hi, hover = (float(x) for x in thrust_range(cfg))
-    g, keep = cfg.vehicle.quad.gravity, cfg.disturbance_keep
-    rule = ("a0 >= 0: hover + a0 * (max - hover), a0 < 0: hover + a0 * (hover - min)"
-            if cfg.vehicle.hover_centered_thrust else "min + 0.5 * (a0 + 1) * (max - min)")  # fmt: skip
-    model = dict(thrust_min_N=lo, thrust_hover_N=hover, thrust_max_N=hi, thrust_rule=rule, mass_kg=hover / g,
-                 gravity_m_s2=g, hover_centered=cfg.vehicle.hover_centered_thrust)  # fmt: skip
-    text = (
-        "after each control step (as error_integral, after last_action; nothing at the first observation "
-        "of a flight), with v and q the velocity (m/s, world frame) and attitude measured now and v_prev, "
-        "q_prev the ones measured at the previous control step (when the action was chosen): a_meas = "
-        "(v - v_prev) / dt; a_nom = (T / m) R(q_prev) (0, 0, 1) - (0, 0, g), T the collective thrust "
-        "(N) of the applied action a0 (last_action[0]) by the nominal action map "
-        f"({rule}; disturbance_model's thrust_*_N), m = {hover / g!r} kg the nominal mass (hover / g; "
-        f"1 when the thrust is an acceleration), g = {g!r} m/s^2, R(q) body to world; disturbance = keep * "
-        f"disturbance + (1 - keep) * (a_meas - a_nom), an entry that is not finite taken as 0, keep = "
-        f"exp(-dt / tau) = {keep!r}, dt = {cfg.control_dt!r} s, tau = {cfg.observation.disturbance_tau!r} s; "
-        "disturbance = 0 (3) at the start of a flight, v_prev, q_prev the first measured. With "
-        "randomization.vehicles: the flown vehicle's action map and m = its hover thrust / g"
-    )
-    return dict(disturbance=text, disturbance_keep=keep, disturbance_model=model)
 
 
 def reference_integral_spec(cfg: EnvConfig) -> dict:

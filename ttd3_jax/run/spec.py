@@ -27,7 +27,7 @@ PRESETS = ("fast", "robust", "cf2", "fast_dpg", "fast_model_free", "paper", "muj
 SEED_LIMIT = 2**32  # seeds are uint32 PRNG keys: seed + num_seeds - 1 must stay below this
 # config.json's "format": the layout of the run spec this version reads, and the only one.  A
 # file of another format was written by an older ttd3_jax, and is refused with one line.
-CONFIG_FORMAT = 15
+CONFIG_FORMAT = 16
 
 
 # The ``robust`` preset's task on top of ``fast``'s (EnvConfig fields by name): what each

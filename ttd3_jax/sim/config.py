@@ -108,11 +108,6 @@ class ObservationConfig:
     # leaky averages of the applied action, one per time constant (s): a short history of the
     # commands, from which the policy can tell what the rotors and rate loop are doing now
     action_history_s: Annotated[tuple[float, ...], Suppress] = ()
-    # an estimate of the acceleration the nominal model does not explain (3, m/s², world frame;
-    # needs obs_memory): each control step's measured velocity change over dt, less the nominal
-    # model's acceleration for the applied action at the attitude measured when it was chosen,
-    # low-passed with this time constant (s; 0: off)
-    disturbance_tau: Annotated[float, Suppress] = 0.0
 
     def __post_init__(self):
         f = lambda name: _where("observation", name)  # noqa: E731
@@ -127,11 +122,6 @@ class ObservationConfig:
             checks.fail(f("action_history_s"), f"increasing time constants in (0, {PREVIEW_MAX_S:g}] s", h)
         if h and self.obs_memory is not True:
             checks.fail(f("action_history_s"), "() without obs_memory (which keeps the last action)", h)
-        tau = self.disturbance_tau
-        if not (checks.is_number(tau) and (tau == 0 or 0.01 <= tau <= 10)):
-            checks.fail(f("disturbance_tau"), "0 (off) or a finite number in [0.01, 10] s", tau)
-        if tau > 0 and self.obs_memory is not True:
-            checks.fail(f("disturbance_tau"), "0 without obs_memory (which keeps the applied action)", tau)
         checks.number(f("ref_integral_gain"), self.ref_integral_gain, 0, 100, unit=" 1/s")
         for name in ("ref_integral_band", "ref_integral_limit"):
             checks.number(f(name), getattr(self, name), 0, 1, lo_open=True, unit=" m")
@@ -358,13 +348,6 @@ class EnvConfig:
         """exp(-control_dt / τ) for each τ of ``observation.action_history_s``: what each average
         of the action history keeps of itself per control step (the env's and the export's)."""
         return tuple(math.exp(-self.control_dt / t) for t in self.observation.action_history_s)
-
-    @property
-    def disturbance_keep(self) -> float:
-        """exp(-control_dt / ``observation.disturbance_tau``): what the disturbance estimate keeps
-        of itself per control step (the env's and the export's; 0.0 when it is off)."""
-        tau = self.observation.disturbance_tau
-        return math.exp(-self.control_dt / tau) if tau > 0 else 0.0
 
     @property
     def episode_length(self) -> int:

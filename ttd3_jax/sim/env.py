@@ -42,7 +42,6 @@ from ttd3_jax.sim.config import PRIVILEGED_AHEAD_S, EnvConfig, make_config
 from ttd3_jax.sim.dynamics import (
     QuadParams,
     QuadState,
-    body_z,
     clip_control,
     model_state,
     quat_from_axis_angle,
@@ -53,8 +52,6 @@ from ttd3_jax.sim.dynamics import (
 from ttd3_jax.sim.env_api import Env, State
 from ttd3_jax.sim.env_state import (
     DelayedTrackingState,
-    DisturbanceMemoryState,
-    DisturbanceRandomizedState,
     HistoryMemoryState,
     HistoryRandomizedState,
     IntegralMemoryState,
@@ -116,15 +113,6 @@ def hover_action(cfg: EnvConfig, quad: QuadParams | None = None) -> jax.Array:
     ``thrust_map_mass`` set: the hover action of that (nominal) mass."""
     u = jnp.array([thrust_range(cfg, quad)[2], 0.0, 0.0, 0.0])
     return control_to_action(cfg, u, quad)
-
-
-def nominal_acceleration(cfg: EnvConfig, a: jax.Array, q: jax.Array, quad: QuadParams | None = None):
-    """The acceleration (3,) m/s² the nominal model gives action ``a`` (4,) at attitude ``q``:
-    T / m R(q) e3 − g e3, T the action map's thrust, m its hover thrust / g (the nominal mass; 1
-    when the thrust is an acceleration), of the vehicle the controller knows (``quad``: as above)."""
-    g = cfg.vehicle.quad.gravity
-    thrust = action_to_control(cfg, a, quad)[..., 0]
-    return thrust / (thrust_range(cfg, quad)[2] / g) * body_z(q) - jnp.asarray([0.0, 0.0, g], q.dtype)
 
 
 # -- the tracks a config trains and is selected on: the paper's mixture, or the wide one ---
@@ -334,18 +322,13 @@ class TrackingEnv(Env):
             ps = MemoryTrackingState(**fields, last_action=jnp.zeros(4, f), err_int=jnp.zeros(3, f))
         else:
             ps = TrackingState(**fields)
-        # (obs_memory: one of the two above; the history's state holds ref_int, unread at gain 0,
-        # and the disturbance's a history without rows when action_history_s is empty)
-        o = c.observation
-        if o.ref_integral_gain > 0 or o.action_history_s or o.disturbance_tau > 0:
+        # (obs_memory: one of the two above; the history's state holds ref_int, unread at gain 0)
+        if c.observation.ref_integral_gain > 0 or c.observation.action_history_s:
             kind = IntegralRandomizedState if self._randomized else IntegralMemoryState
             ps = kind(**vars(ps), ref_int=jnp.zeros(3, f))
-        if o.action_history_s or o.disturbance_tau > 0:
+        if c.observation.action_history_s:
             kind = HistoryRandomizedState if self._randomized else HistoryMemoryState
-            ps = kind(**vars(ps), act_hist=jnp.zeros((len(o.action_history_s), 4), f))
-        if o.disturbance_tau > 0:  # (v_prev and q_prev: the first observation's)
-            kind = DisturbanceRandomizedState if self._randomized else DisturbanceMemoryState
-            ps = kind(**vars(ps), dist=jnp.zeros(3, f), v_prev=jnp.zeros(3, f), q_prev=jnp.zeros(4, f))
+            ps = kind(**vars(ps), act_hist=jnp.zeros((len(c.observation.action_history_s), 4), f))
         obs, ps = self.observe(ps)
         zero = jnp.zeros((), f)
         metrics = {"tracking_error": zero, "energy": zero, "energy_sq": zero, "crashed": zero}
@@ -518,20 +501,6 @@ class TrackingEnv(Env):
             p = p + ps.plant.pos_bias  # the observed position's bias (before the track-frame shift)
         return p, v, q, ps
 
-    def _estimate_disturbance(self, ps: TrackingState, v: jax.Array, q: jax.Array, integrate: bool):
-        """``observation.disturbance_tau``: after a control step (``integrate``), the low-passed
-        acceleration the nominal model does not explain, (v − v_prev) / dt less
-        :func:`nominal_acceleration` of the action applied (``last_action``) at the attitude
-        measured when it was chosen (``q_prev``); then v and q kept for the next step."""
-        c = self.config
-        if integrate:
-            known = rz.nominal_vehicle(ps.plant) if self._randomized else None
-            a_nom = nominal_acceleration(c, ps.last_action, ps.q_prev, known)
-            e = _zero_non_finite((v - ps.v_prev) / c.control_dt - a_nom)
-            keep = jnp.asarray(c.disturbance_keep, e.dtype)
-            ps = ps.replace(dist=keep * ps.dist + (1.0 - keep) * e)
-        return ps.replace(v_prev=v, q_prev=q)
-
     def observe(self, ps: TrackingState, p_ref_now: jax.Array | None = None, integrate: bool = False):
         """Observation (O1), and the state with its noise key advanced and ``ref_next``
         refreshed.  ``p_ref_now`` may pass p_d(k) when the caller already has it.
@@ -549,8 +518,6 @@ class TrackingEnv(Env):
             if c.observation.ref_integral_gain > 0:
                 near = jnp.abs(e) < c.observation.ref_integral_band  # per axis: no wind-up far off
                 ps = ps.replace(ref_int=ps.ref_int + c.control_dt * jnp.where(near, e, 0.0))
-        if c.observation.disturbance_tau > 0:  # from the measured v and q too
-            ps = self._estimate_disturbance(ps, v, q, integrate)
         if c.observation.ref_integral_gain > 0:
             p = p - reference_shift(c, ps)  # the vehicle against the shifted reference: p − s
         if c.observation.canonical_q_obs:
@@ -575,8 +542,6 @@ class TrackingEnv(Env):
             parts.update(last_action=ps.last_action, error_integral=ps.err_int)
         if c.observation.action_history_s:
             parts["action_history"] = ps.act_hist.reshape(-1)
-        if c.observation.disturbance_tau > 0:
-            parts["disturbance"] = ps.dist
         if self.layout.has("vehicle"):  # the known vehicle (randomization.vehicles)
             parts["vehicle"] = vm.descriptor(ps.plant.nominal)
 

@@ -105,23 +105,3 @@ class HistoryRandomizedState(IntegralRandomizedState):
     """:class:`IntegralRandomizedState` with ``observation.action_history_s``."""
 
     act_hist: jax.Array  # (n, 4) as HistoryMemoryState's
-
-
-@struct.dataclass
-class DisturbanceMemoryState(HistoryMemoryState):
-    """:class:`HistoryMemoryState` with ``observation.disturbance_tau`` (its ``act_hist`` has no
-    rows without ``action_history_s``): the disturbance estimate and what it was last measured
-    from."""
-
-    dist: jax.Array  # (3,) m/s², low-passed measured acceleration less the nominal model's (world frame)
-    v_prev: jax.Array  # (3,) m/s, the velocity measured at the last control step
-    q_prev: jax.Array  # (4,) the attitude measured at the last control step (body to world)
-
-
-@struct.dataclass
-class DisturbanceRandomizedState(HistoryRandomizedState):
-    """:class:`HistoryRandomizedState` with ``observation.disturbance_tau``."""
-
-    dist: jax.Array  # (3,) as DisturbanceMemoryState's
-    v_prev: jax.Array  # (3,) m/s
-    q_prev: jax.Array  # (4,)

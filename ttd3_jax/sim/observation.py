@@ -131,12 +131,6 @@ def layout(cfg: EnvConfig) -> ObsLayout:
         names = tuple(f"action_history_{t:g}s.{i}" for t in times for i in range(4))
         meaning = "leaky averages of the applied action, 4 per time constant action_history_s"
         parts.append(Part("action_history", names, meaning))
-    if cfg.observation.disturbance_tau > 0:
-        meaning = (
-            "estimate of the acceleration the nominal model does not explain (m/s^2), world frame: "
-            "(v - v_prev) / dt less the nominal model's, low-passed (disturbance_tau)"
-        )
-        parts.append(Part("disturbance", _vec("disturbance"), meaning))
     if cfg.randomization.vehicles:  # the known vehicle of one policy for several (sim.vehicle_mix)
         parts.append(Part("vehicle", tuple(f"vehicle.{e}" for e in vm.DESCRIPTOR), vm.DESCRIPTOR_MEANING))
     for t in cfg.observation.preview_s:
