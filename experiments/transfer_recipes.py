@@ -1,22 +1,26 @@
 """Which training recipe flies a real vehicle's inner loop: each variant of the ``cf2`` preset
-trained on 3 seeds, each seed's selected policy exported and flown in crazyflow through the
+trained on 3 seeds, each seed's policy in ``best/`` exported and flown in crazyflow through the
 firmware's rate loop (``experiments/transfer_crazyflow.py``, in the crazyflow venv).
 
 Per variant and seed: Σ‖e‖ in our simulator on Spiral-RT and LOS-RT (nominal), and on
 crazyflow the crashes, the largest ratio to our simulator and how many tracks beat crazyflow's
 Mellinger controller, over Spiral-RT, LOS-RT seeds 0-4 and the 0.5 m circle (issue 50's
 criteria). Variants (``VARIANTS``): the preset (a heading cost, an action-rate cost of 0.3,
-memory and the action history; no position bias or observation noise in training); the preset
-before a90ac70 changed it (``BEFORE``: a ±1 cm position bias and noise in training,
-the action-rate cost at 1.0), and on top of that preset, as they were measured: without the
-action history; without memory (no last action, error integral, integral action or history, so
-no action-rate cost either); either cost alone; the action-rate cost at 0.3 and 0.1; neither;
-128-128 networks; 1 s rollouts for the actor instead of 0.5 s; without the bias, and without the
-noise too ("clean", the action-rate cost at 0.3 on top of which is today's preset); without the
-inner loop in training (``robust``, instant rates); on today's preset, the action-rate cost at
-0.1, no wind in training, half the vehicle ranges. The body-frame observation, the critics'
-value ending a rollout and a disturbance estimate in the observation were variants until they
-were measured and removed (926f0bb, d8791e4, aef5b75).
+memory and the action history, integral action within 3 mm, the actor's lr 6e-3 falling to 0,
+each seed's last policy; no position bias or observation noise in training); a90ac70's preset
+(``A90``: integral action within 1 cm, a constant lr 3e-3, the lowest-validation policies) and
+the one before it (``BEFORE``: a ±1 cm position bias and noise in training, the action-rate cost
+at 1.0), and on top of ``BEFORE``, as they were measured: without the action history; without
+memory (no last action, error integral, integral action or history, so no action-rate cost
+either); either cost alone; the action-rate cost at 0.3 and 0.1; neither; 128-128 networks; 1 s
+rollouts for the actor instead of 0.5 s; without the bias, and without the noise too ("clean",
+the action-rate cost at 0.3 on top of which is a90ac70's preset); without the inner loop in
+training (``robust``, instant rates); on a90ac70's preset, the action-rate cost at 0.1, no wind
+in training, half the vehicle ranges, the lr falling to 0 from 3e-3, 6e-3 and 1e-2; the lr
+6e-3 falling to 0 with integral action within 5 mm and, today's preset, within 3 mm, both with
+the lowest-validation policies. The body-frame observation, the critics' value ending a rollout
+and a disturbance estimate in the observation were variants until they were measured and
+removed (926f0bb, d8791e4, aef5b75).
 
     python experiments/transfer_recipes.py --out results/transfer/recipes          # every variant
     python experiments/transfer_recipes.py --out DIR --variants cf2 action_rate     # some
@@ -41,71 +45,91 @@ import sys
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 TRACKS = ("spiral_rt", *(f"los_rt_seed{s:02d}" for s in range(5)), "circle_r0.5")
-# The preset's task changes that made today's preset from the one before (a position bias of
-# ±1 cm and observation noise x0-0.75 in training, the action-rate cost at 1.0): the variants
-# measured before the change are changes to that preset, so they are written on top of it here.
-BEFORE = {"pos_bias": 0.01, "obs_noise": (0.0, 0.75), "rho_rate": 1.0}
+# The presets the older variants were measured against, as changes to today's, so that each
+# variant is written as it was run: a90ac70's (``A90``: integral action within 1 cm, the actor's
+# lr a constant 3e-3, policies selected on the validation tracks; task changes, then run
+# changes), and the one before it (``BEFORE``: a90ac70's with a ±1 cm position bias and
+# observation noise x0-0.75 in training, the action-rate cost at 1.0).
+A90 = {"ref_integral_band": 0.01}
+A90_RUN = {"lr_actor": 3e-3, "lr_decay": 0.0, "selection": "validation"}
+BEFORE = A90 | {"pos_bias": 0.01, "obs_noise": (0.0, 0.75), "rho_rate": 1.0}
 # variant -> (description, preset, EnvConfig changes by field name[, TrainConfig or Hyper changes])
 VARIANTS = {
     "cf2": ("the cf2 preset", "cf2", {}),
-    "before": ("the cf2 preset before (bias ±1 cm, noise, action rate 1.0)", "cf2", BEFORE),
-    "no_history": ("without the action history", "cf2", BEFORE | {"action_history_s": ()}),
+    "before": ("the cf2 preset before a90ac70 (bias ±1 cm, noise, action rate 1.0)", "cf2", BEFORE, A90_RUN),
+    "no_history": ("without the action history", "cf2", BEFORE | {"action_history_s": ()}, A90_RUN),
     "no_memory": (
         "no memory: no last action, error integral, integral action or history (so no action-rate cost)",
         "cf2",
         BEFORE | {"rho_rate": 0.0, "obs_memory": False, "ref_integral_gain": 0.0, "action_history_s": ()},
+        A90_RUN,
     ),
-    "heading_only": ("heading cost only", "cf2", BEFORE | {"rho_rate": 0.0}),
-    "rate0.3": ("action-rate cost 0.3 ||Δa||²", "cf2", BEFORE | {"rho_rate": 0.3}),
-    "rate0.1": ("action-rate cost 0.1 ||Δa||²", "cf2", BEFORE | {"rho_rate": 0.1}),
-    "rate_only": ("action-rate cost only", "cf2", BEFORE | {"rho_yaw": 0.0}),
-    "neither": ("neither cost", "cf2", BEFORE | {"rho_yaw": 0.0, "rho_rate": 0.0}),
+    "heading_only": ("heading cost only", "cf2", BEFORE | {"rho_rate": 0.0}, A90_RUN),
+    "rate0.3": ("action-rate cost 0.3 ||Δa||²", "cf2", BEFORE | {"rho_rate": 0.3}, A90_RUN),
+    "rate0.1": ("action-rate cost 0.1 ||Δa||²", "cf2", BEFORE | {"rho_rate": 0.1}, A90_RUN),
+    "rate_only": ("action-rate cost only", "cf2", BEFORE | {"rho_yaw": 0.0}, A90_RUN),
+    "neither": ("neither cost", "cf2", BEFORE | {"rho_yaw": 0.0, "rho_rate": 0.0}, A90_RUN),
     "instant": ("trained with instant rates (robust)", "robust", {}),
-    "wide": ("128-128 networks", "cf2", BEFORE, {"hidden": (128, 128)}),
-    "horizon100": ("1 s rollouts for the actor (100 control steps)", "cf2", BEFORE, {"model_horizon": 100}),
-    "no_bias": ("no position bias in training", "cf2", BEFORE | {"pos_bias": 0.0}),
+    "wide": ("128-128 networks", "cf2", BEFORE, A90_RUN | {"hidden": (128, 128)}),
+    "horizon100": (
+        "1 s rollouts for the actor (100 control steps)",
+        "cf2",
+        BEFORE,
+        A90_RUN | {"model_horizon": 100},
+    ),
+    "no_bias": ("no position bias in training", "cf2", BEFORE | {"pos_bias": 0.0}, A90_RUN),
     "clean": (
         "no position bias or observation noise in training",
         "cf2",
         BEFORE | {"pos_bias": 0.0, "obs_noise": (0.0, 0.0)},
+        A90_RUN,
     ),
-    "clean_rate0.1": ("clean, the action-rate cost at 0.1", "cf2", {"rho_rate": 0.1}),
-    "calm": ("no wind in training", "cf2", {"wind_mean": 0.0, "wind_sigma": 0.0}),
-    "decay": ("the actor's learning rate falling linearly to 0 over the run", "cf2", {}, {"lr_decay": 1.0}),
-    "decay_lr6e-3": (
-        "the actor's learning rate 6e-3 falling linearly to 0",
-        "cf2",
-        {},
-        {"lr_actor": 6e-3, "lr_decay": 1.0},
-    ),
-    "decay_lr1e-2": (
-        "the actor's learning rate 1e-2 falling linearly to 0",
-        "cf2",
-        {},
-        {"lr_actor": 1e-2, "lr_decay": 1.0},
-    ),
-    "decay_band5mm": (
-        "the actor's learning rate 6e-3 falling linearly to 0, integral action within 5 mm (not 1 cm)",
-        "cf2",
-        {"ref_integral_band": 0.005},
-        {"lr_actor": 6e-3, "lr_decay": 1.0},
-    ),
-    "decay_band3mm": (
-        "the actor's learning rate 6e-3 falling linearly to 0, integral action within 3 mm",
-        "cf2",
-        {"ref_integral_band": 0.003},
-        {"lr_actor": 6e-3, "lr_decay": 1.0},
-    ),
+    "clean_rate0.3": ("clean, the action-rate cost at 0.3 (a90ac70's preset)", "cf2", A90, A90_RUN),
+    "clean_rate0.1": ("clean, the action-rate cost at 0.1", "cf2", A90 | {"rho_rate": 0.1}, A90_RUN),
+    "calm": ("no wind in training", "cf2", A90 | {"wind_mean": 0.0, "wind_sigma": 0.0}, A90_RUN),
     "tight": (
         "half the ranges: rotors, rate gains x0.85-1.2, drag x0.75-1.25, inertia x0.9-1.1, mass ±7.5 %",
         "cf2",
-        {
+        A90
+        | {
             "tau_rate": (0.85, 1.2),
             "rate_gains": (0.85, 1.2),
             "drag": (0.75, 1.25),
             "inertia": (0.9, 1.1),
             "mass": (0.925, 1.075),
-        },
+        },  # fmt: skip
+        A90_RUN,
+    ),
+    "decay": (
+        "the actor's learning rate falling linearly to 0 over the run",
+        "cf2",
+        A90,
+        A90_RUN | {"lr_decay": 1.0},
+    ),
+    "decay_lr6e-3": (
+        "the actor's learning rate 6e-3 falling linearly to 0",
+        "cf2",
+        A90,
+        A90_RUN | {"lr_actor": 6e-3, "lr_decay": 1.0},
+    ),
+    "decay_lr1e-2": (
+        "the actor's learning rate 1e-2 falling linearly to 0",
+        "cf2",
+        A90,
+        A90_RUN | {"lr_actor": 1e-2, "lr_decay": 1.0},
+    ),
+    "decay_band5mm": (
+        "the actor's learning rate 6e-3 falling linearly to 0, integral action within 5 mm (not 1 cm)",
+        "cf2",
+        {"ref_integral_band": 0.005},
+        {"selection": "validation"},
+    ),
+    "decay_band3mm": (
+        "the actor's learning rate 6e-3 falling linearly to 0, integral action within 3 mm: the preset "
+        "since dbd47e2, its policies selected on the validation tracks",
+        "cf2",
+        {},
+        {"selection": "validation"},
     ),
 }
 QUICK = dict(total_transitions=30_000, epochs=2)  # --quick's budget
