@@ -477,12 +477,9 @@ def best_note(spec: sp.RunSpec) -> str:
     """What the run keeps in best/, for its last line."""
     if not spec.is_quadrotor:
         return ""
-    last = spec.train.selection == "last"
-    return (
-        ", best/ ("
-        + ("each seed's last policy" if last else "the policy selected on the validation tracks")
-        + ")"
-    )
+    if spec.train.selection == "last":
+        return ", best/ (each seed's last policy)"
+    return ", best/ (the policy selected on the validation tracks)"
 
 
 def _finish(run_dir: str, spec: sp.RunSpec, ev, *, compile_s: float, run_s: float, stages: Stages) -> dict:
