@@ -23,6 +23,8 @@ EPYC; on a 2-core AVX-512 Intel Xeon VM every line matches but ``env_obs_noise``
 (2026-12-05), so that one line differs by CPU vendor, not by code.  Both files were rewritten on
 2026-12-07 when :mod:`ttd3_jax.compile_flags` moved every line: ``fingerprint.txt`` holds only
 the env lines then (from an AVX-512 EPYC with the AVX2 cap); its train lines need an AVX2 VM.
+``fingerprint_avx512.txt``'s ``train_fast`` lines were rewritten again when the ``fast`` preset
+moved to 16 envs and 480k transitions (issue 51); every other line was unchanged.
 ``--compare FILE`` checks each line against FILE and exits 1 naming the ones that differ.
 
 Each line is ``name sha256-prefix``:

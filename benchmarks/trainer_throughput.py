@@ -26,8 +26,9 @@ Cases (quadrotor, ``fast_dpg`` preset, the TD3 actor update through the critic, 
   batch1024       minibatches of 1024 instead of 256 (4x the samples per update)
   seeds4          4 seeds vmapped in one program (per-seed figures are the total / 4)
   model_h50       the ``fast`` preset: per vector step a 50-step differentiable rollout of
-                  the 64 envs (the actor update), then 16 critic updates
-  model_h50_utd1  model_h50 with 1 critic update per vector step instead of 16
+                  the 16 envs (the actor update), no critic
+  model_h50_envs64  model_h50 with 64 envs per rollout (the preset until c0d0d59)
+  model_h50_utd1  model_h50 with 1 critic update per vector step
   paper           the ``paper`` preset's epoch: 20 envs x 20 updates of batch 256 per vector
                   step, 256-256 networks, 3 seeds vmapped, 1e6-row buffers (totals of 3 seeds)
 
@@ -93,9 +94,13 @@ def cases(quick: bool) -> dict:
         total = kw.pop("total", steps) + base["warmup_transitions"]
         return sp.preset("fast_dpg", **{**base, "num_envs": num_envs, "total_transitions": total, **kw})
 
-    model_steps = 4 if quick else 40  # vector steps (actor updates) of the model-based case
-    model_total = base["warmup_transitions"] + 64 * 50 * model_steps
-    model = sp.preset("fast", **{**base, "total_transitions": model_total})
+    model_steps = 4 if quick else 40  # vector steps (actor updates) of the model-based cases
+
+    def model_cfg(num_envs=16, **kw):  # the fast preset (16 envs, no critic) at another env count
+        total = base["warmup_transitions"] + num_envs * 50 * model_steps
+        return sp.preset("fast", **{**base, "num_envs": num_envs, "total_transitions": total, **kw})
+
+    model = model_cfg()
     out = {
         "fast": (cfg(), False),
         "fast_vmap1": (cfg(), True),
@@ -105,6 +110,7 @@ def cases(quick: bool) -> dict:
         "seeds4": (cfg(num_seeds=4, total=steps // 2), True),
         # the fast preset itself: a 50-step differentiable rollout (the actor update) per vector step
         "model_h50": (model, False),
+        "model_h50_envs64": (model_cfg(64), False),  # c0d0d59's fast: 64 envs per rollout
         # the same with one critic update per vector step instead of 16 (the model-based actor
         # does not use the critics; T-TD3's sigma is still updated per critic update)
         "model_h50_utd1": (sp.replace(model, updates_per_step=1), False),
@@ -165,6 +171,7 @@ def build_trainer(case: str, quick: bool = False, large: bool = False):
         compile_s=time.perf_counter() - t0,
         transitions=s.num_seeds * c.steps_per_epoch * c.num_envs * c.env_steps_per_step,
         updates=s.num_seeds * c.steps_per_epoch * c.updates_per_step,
+        rollouts=s.num_seeds * c.steps_per_epoch if c.model_horizon > 0 else 0,  # model-based actor updates
         flops_per_update=update_flops(s),
     )
     return lambda: jax.block_until_ready(compiled(ts, s.hp)), info
@@ -273,6 +280,11 @@ def table(infos: dict, best: dict) -> tuple[list[dict], float, float]:
             f"{fmt(row['gflops'], '7.1f'):>7} {fmt(row['peak_fraction'], '6.1%'):>6} "
             f"{fmt(row['layers_fraction'], '8.1%'):>8}"
         )
+    for row in rows:
+        if row.get("rollouts"):
+            row["ms_per_rollout"] = 1e3 * row["run_s"] / row["rollouts"]
+            print(f"{row['case']}: {row['ms_per_rollout']:.1f} ms per model-based actor update "
+                  f"({row['num_envs']} envs x 50 steps, differentiated)")  # fmt: skip
     return rows, peak, layers
 
 

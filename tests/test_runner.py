@@ -243,13 +243,14 @@ def test_policy_selected_on_validation_tracks_is_saved_and_reloads(tmp_path):
 
 
 def test_fast_preset_model_actor_learns_on_a_small_budget(tmp_path, caplog):
-    """The default ``fast`` preset's first two epochs (100 rollouts, the first 4 the random
-    warm-up, 160k transitions, one seed; about 20 s on 2 CPU cores).  The untrained policy
-    scores about 4e4 on both tracks; at this point of training ``experiments/fast_sweep.py``
-    measured Spiral-RT 16-44 and LOS-RT 238-269 (seeds 0-2), and the bars are about 2x above
-    the worst.  Around the three programs the launch compiles nothing but the seeds' keys:
-    an eager jax op on the host path (a key, a slice of the state, a zero) is a compile of
-    its own, 10-100 ms each (issue 51)."""
+    """The default ``fast`` preset's first two epochs (100 rollouts of 16 envs, the first 4
+    the random warm-up, 80k transitions, one seed; about 15 s on 2 CPU cores).  The untrained
+    policy scores about 4e4 on both tracks; at this point of training
+    ``experiments/fast_sweep.py`` measured Spiral-RT 14-29 and LOS-RT 227-241 (seeds 0-2,
+    vmapped), a seed-0 run 9.6 and 231, and the bars are 2.3-3.4x above the worst.  Around
+    the three programs the launch compiles nothing but the seeds' keys: an eager jax op on
+    the host path (a key, a slice of the state, a zero) is a compile of its own, 10-100 ms
+    each (issue 51)."""
     with jax.log_compiles(), caplog.at_level(logging.WARNING, logger="jax"):
         part = run(sp.preset("fast"), out=str(tmp_path), verbose=False, stop_after=2)
     row = rundir.read_metrics(part["run_dir"])[-1]

@@ -29,14 +29,16 @@ def _changed(a, b) -> set[str]:
 
 
 def test_the_presets_differ_where_their_docs_say():
-    """``fast_dpg`` is ``fast`` with the paper's actor update (and the budget, update rate
-    and constant learning rate that update needs), ``fast_model_free`` is ``fast_dpg``
+    """``fast_dpg`` is ``fast`` with the paper's actor update (and the budget, env count,
+    warm-up, update rate and constant learning rate that update needs), ``fast_model_free`` is ``fast_dpg``
     observing its memory and privileged critic inputs; ``paper`` is the defaults; unknown
     names are refused."""
     fast, dpg, free = (sp.preset(n) for n in ("fast", "fast_dpg", "fast_model_free"))
     assert fast.train.model_horizon > 0 and dpg.train.model_horizon == 0
     assert _changed(fast.train, dpg.train) <= {
         "model_horizon",
+        "num_envs",
+        "warmup_transitions",
         "total_transitions",
         "epochs",
         "updates_per_step",

@@ -155,9 +155,9 @@ def preset(name: str, **changes) -> RunSpec:
     ``paper``: the published quadrotor settings (spec §2.4), 3e6 transitions.
     ``fast``: the ``practical`` env (10 ms actions, 50 ms look-ahead, track-frame
     observation) with hover-centred thrust, running observation normalisation, 64-64
-    networks, 64 envs, rewards scaled by 0.01, and (not in the paper) a model-based actor
-    update: 0.5 s rollouts (``model_horizon=50``) through the simulator, actor lr 2e-2 falling
-    to 0, 960k transitions in 12 epochs, no critic: σ moves with the rollouts' rewards.
+    networks, rewards scaled by 0.01, and (not in the paper) a model-based actor update: 0.5 s
+    rollouts (``model_horizon=50``) of 16 envs through the simulator, actor lr 1e-2 falling to
+    0, 480k transitions in 12 epochs, no critic: σ moves with the rollouts' rewards.
     ``fast_dpg``: ``fast`` with the paper's actor update (∂Q₁/∂a through the critic), 450k
     transitions, 16 updates per 64-env step; it plateaus (docs/results.md).
     ``fast_model_free``: ``fast_dpg`` with the observation's memory (last action, error
@@ -187,9 +187,10 @@ def preset(name: str, **changes) -> RunSpec:
             train = dataclasses.replace(train, model_horizon=50, total_transitions=1_600_000, epochs=10,
                                         updates_per_step=2)  # fmt: skip
             hp = hp.replace(lr_actor=1e-2)
-        if name == "fast":  # no critics; 960k transitions in 12 epochs; the actor's lr 2e-2 falling to 0
-            train = dataclasses.replace(train, updates_per_step=0, total_transitions=960_000, epochs=12)
-            hp = hp.replace(lr_actor=2e-2, lr_decay=1.0)
+        if name == "fast":  # no critics; 16 envs, 480k transitions in 12 epochs; lr 1e-2 falling to 0
+            train = dataclasses.replace(train, updates_per_step=0, num_envs=16, total_transitions=480_000,
+                                        warmup_transitions=3_200, epochs=12)  # fmt: skip
+            hp = hp.replace(lr_actor=1e-2, lr_decay=1.0)
         memory = name == "fast_model_free"
         task = make_config("practical", hover_centered_thrust=True, obs_memory=memory, obs_privileged=memory)
         base = RunSpec(train=train, hp=hp, task=task)
