@@ -53,8 +53,9 @@ through its config template.
 
 Rows at the end (``design``) show what our design adds in the same units: many envs per
 update (64 envs x 16 updates per vector step, as the ``fast_dpg`` preset), and the ``fast``
-preset's model-based actor update (a 50-step differentiable rollout of the 64 envs per
-vector step, whose 3200 transitions all enter the buffer, then 16 critic updates).
+preset's model-based actor update as the preset is now (a 50-step differentiable rollout of
+its envs per vector step; 16 envs and no critic since issue 51, 64 envs and 16 critic updates
+in the runs dated before 2026-12-07).
 """
 
 from __future__ import annotations
@@ -231,7 +232,7 @@ def build_ours(env: str, hidden: int, steps: int, num_envs: int = 1, utd: int = 
     from ttd3_jax.td3.config import TrainConfig
     from ttd3_jax.td3.trainer import make_trainer
 
-    if preset:  # a training preset as it is (64 envs x 16 updates, 64-64); `steps` vector steps
+    if preset:  # a training preset as it is; `steps` vector steps
         s = sp.preset(preset, epochs=1, warmup_transitions=4096, buffer_size=BUFFER)
         s = sp.replace(s, total_transitions=4096 + s.train.num_envs * s.train.env_steps_per_step * steps)
         c, hp = s.train, s.hp
