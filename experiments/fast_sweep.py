@@ -1,7 +1,7 @@
 """How soon the ``fast`` preset beats the paper: a sweep of its actor learning rate and its
 decay (``Hyper`` leaves: one compiled program, ``vmap``ped over seeds x learning rates x
-decays), for each static variant of the env count, the warm-up and the budget (a program
-each).
+decays), for each static variant of the env count, the rollout horizon, the warm-up and the
+budget (a program each).
 
 Every run evaluates after each epoch of ``--epoch-rollouts`` actor updates (one per rollout of
 every env, so variants with other env counts compare at equal updates); the table gives,
@@ -39,6 +39,8 @@ VARIANTS = {
     "e8_240k": {"num_envs": 8, "total_transitions": 240_000, "warmup_transitions": 1_600},
     "320k": {"total_transitions": 320_000},
     "w0": {"warmup_transitions": 0},
+    "h25": {"model_horizon": 25},  # 0.25 s rollouts: twice the updates per transition
+    "h100": {"model_horizon": 100},  # 1 s rollouts
 }
 
 
