@@ -244,7 +244,7 @@ def test_policy_selected_on_validation_tracks_is_saved_and_reloads(tmp_path):
 
 def test_fast_preset_model_actor_learns_on_a_small_budget(tmp_path, caplog):
     """The default ``fast`` preset's first two epochs (100 rollouts of 16 envs, the first 4
-    the random warm-up, 80k transitions, one seed; about 15 s on 2 CPU cores).  The untrained
+    the random warm-up, 80k transitions, one seed; about 12 s on 2 CPU cores).  The untrained
     policy scores about 4e4 on both tracks; at this point of training
     ``experiments/fast_sweep.py`` measured Spiral-RT 14-29 and LOS-RT 227-241 (seeds 0-2,
     vmapped), a seed-0 run 9.6 and 231, and the bars are 2.3-3.4x above the worst.  Around
