@@ -111,8 +111,8 @@ def cases(quick: bool) -> dict:
         # the fast preset itself: a 50-step differentiable rollout (the actor update) per vector step
         "model_h50": (model, False),
         "model_h50_envs64": (model_cfg(64), False),  # c0d0d59's fast: 64 envs per rollout
-        # the same with one critic update per vector step instead of 16 (the model-based actor
-        # does not use the critics; T-TD3's sigma is still updated per critic update)
+        # the same with one critic update per vector step (the model-based actor does not use
+        # the critics; T-TD3's sigma is then updated per critic update)
         "model_h50_utd1": (sp.replace(model, updates_per_step=1), False),
         "paper": (paper_case(quick), True),
     }
