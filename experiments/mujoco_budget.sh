@@ -9,6 +9,9 @@
 #   bash experiments/mujoco_budget.sh resume   # each from its newest checkpoint
 #   bash experiments/mujoco_budget.sh status   # the last progress line of each log
 #   bash experiments/mujoco_budget.sh report   # rebuild the tables and figure in the output folder
+#   bash experiments/mujoco_budget.sh collect  # copy each task both algorithms finished into
+#                                              # results/mujoco (replacing that task's older runs)
+#                                              # and rebuild results/mujoco's tables and figure
 #
 # Environment (defaults in brackets): LONGRUNS [/work/longruns] holds the output folder
 # (LONGRUNS/mujoco, copied into results/mujoco when done), logs and the compilation cache;
@@ -25,7 +28,7 @@ logs=$LONGRUNS/logs
 args=(--tasks ant walker2d inverted_double_pendulum hopper --steps 300000 --warmup 25000 --eval-every 5000
       --checkpoint-every 1 --out "$out" --compile-cache "$LONGRUNS/xla-mujoco")
 
-usage() { echo "usage: bash experiments/mujoco_budget.sh start|resume|status|report" >&2; exit 2; }
+usage() { echo "usage: bash experiments/mujoco_budget.sh start|resume|status|report|collect" >&2; exit 2; }
 [ $# -eq 1 ] || usage
 
 launch() {  # launch ALGO: one algorithm's four tasks in the background, importing the worktree's package
@@ -53,5 +56,32 @@ case $1 in
     done
     ;;
   report) (cd "$WORKTREE" && PYTHONPATH="$WORKTREE" "$PY" experiments/mujoco_compare.py "${args[@]}" --report-only) ;;
+  collect)
+    dest=$repo/results/mujoco
+    for task in ant walker2d inverted_double_pendulum hopper; do
+      runs=()
+      for algo in ttd3 td3; do
+        d=$(ls -d "$out/runs/$task-$algo"/*/ 2>/dev/null | tail -n 1)
+        [ -n "$d" ] && [ -f "$d/eval.json" ] && runs+=("${d%/}")
+      done
+      [ ${#runs[@]} -eq 2 ] || { echo "$task: not finished by both algorithms; left as it is"; continue; }
+      for d in "${runs[@]}"; do
+        name=$(basename "$(dirname "$d")")  # e.g. ant-ttd3
+        keep=$dest/runs/$name/$(basename "$d")
+        rm -rf "$dest/runs/$name" && mkdir -p "$keep"
+        cp "$d"/config.json "$d"/metrics.csv "$d"/eval.json "$keep"/
+        [ ! -f "$d/learning_curve.png" ] || cp "$d/learning_curve.png" "$keep"/
+        "$PY" - "$keep/eval.json" "${keep#"$repo"/}" <<'PY'
+import json, sys
+path, run_dir = sys.argv[1:]
+d = json.load(open(path))
+d["run_dir"] = run_dir  # where the run's files are committed, not where it ran
+json.dump(d, open(path, "w"), indent=2)
+PY
+        echo "$task: $d -> ${keep#"$repo"/}"
+      done
+    done
+    (cd "$repo" && "$PY" experiments/mujoco_compare.py "${args[@]}" --out "$dest" --report-only)
+    ;;
   *) usage ;;
 esac
