@@ -61,7 +61,7 @@ case $1 in
     for task in ant walker2d inverted_double_pendulum hopper; do
       runs=()
       for algo in ttd3 td3; do
-        d=$(ls -d "$out/runs/$task-$algo"/*/ 2>/dev/null | tail -n 1)
+        d=$(ls -d "$out/runs/$task-$algo"/*/ 2>/dev/null | tail -n 1 || true)
         [ -n "$d" ] && [ -f "$d/eval.json" ] && runs+=("${d%/}")
       done
       [ ${#runs[@]} -eq 2 ] || { echo "$task: not finished by both algorithms; left as it is"; continue; }
