@@ -13,8 +13,11 @@
 #                                              # results/mujoco (replacing that task's older runs)
 #                                              # and rebuild results/mujoco's tables and figure
 #
-# Environment (defaults in brackets): LONGRUNS [/work/longruns] holds the output folder
-# (LONGRUNS/mujoco, copied into results/mujoco when done), logs and the compilation cache;
+# Environment (defaults in brackets): TASKS [ant walker2d inverted_double_pendulum hopper] the
+# tasks start and resume train, in order (each takes about 70 min of one idle core per algorithm;
+# on a new machine, leave out those results/mujoco holds from these runs already); LONGRUNS
+# [/work/longruns] holds the output folder (LONGRUNS/mujoco, copied into results/mujoco by
+# collect), logs and the compilation cache;
 # WORKTREE [/work/lr-mujoco] the pinned checkout of COMMIT [7c6bdf6]; PY [the repository's
 # .venv/bin/python] a python with this project's dependencies installed.
 set -euo pipefail
@@ -25,8 +28,14 @@ COMMIT=${COMMIT:-7c6bdf6}
 PY=${PY:-$repo/.venv/bin/python}
 out=$LONGRUNS/mujoco
 logs=$LONGRUNS/logs
-args=(--tasks ant walker2d inverted_double_pendulum hopper --steps 300000 --warmup 25000 --eval-every 5000
-      --checkpoint-every 1 --out "$out" --compile-cache "$LONGRUNS/xla-mujoco")
+ALL_TASKS="ant walker2d inverted_double_pendulum hopper"
+TASKS=${TASKS:-$ALL_TASKS}
+budget=(--steps 300000 --warmup 25000 --eval-every 5000 --checkpoint-every 1 --out "$out"
+        --compile-cache "$LONGRUNS/xla-mujoco")
+# shellcheck disable=SC2206  # the task lists are split into words on purpose
+args=(--tasks $TASKS "${budget[@]}")
+# shellcheck disable=SC2206
+report_args=(--tasks $ALL_TASKS "${budget[@]}")
 
 usage() { echo "usage: bash experiments/mujoco_budget.sh start|resume|status|report|collect" >&2; exit 2; }
 [ $# -eq 1 ] || usage
@@ -55,10 +64,10 @@ case $1 in
       echo "$log: $(grep -E 'epoch|compiled|resum|step' "$log" | tail -n 1)"
     done
     ;;
-  report) (cd "$WORKTREE" && PYTHONPATH="$WORKTREE" "$PY" experiments/mujoco_compare.py "${args[@]}" --report-only) ;;
+  report) (cd "$WORKTREE" && PYTHONPATH="$WORKTREE" "$PY" experiments/mujoco_compare.py "${report_args[@]}" --report-only) ;;
   collect)
     dest=$repo/results/mujoco
-    for task in ant walker2d inverted_double_pendulum hopper; do
+    for task in $ALL_TASKS; do
       runs=()
       for algo in ttd3 td3; do
         d=$(ls -d "$out/runs/$task-$algo"/*/ 2>/dev/null | tail -n 1 || true)
@@ -81,7 +90,7 @@ PY
         echo "$task: $d -> ${keep#"$repo"/}"
       done
     done
-    (cd "$repo" && "$PY" experiments/mujoco_compare.py "${args[@]}" --out "$dest" --report-only)
+    (cd "$repo" && "$PY" experiments/mujoco_compare.py "${report_args[@]}" --out "$dest" --report-only)
     ;;
   *) usage ;;
 esac
