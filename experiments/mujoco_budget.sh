@@ -79,7 +79,7 @@ case $1 in
         keep=$dest/runs/$name/$(basename "$d")
         rm -rf "$dest/runs/$name" && mkdir -p "$keep"
         cp "$d"/config.json "$d"/metrics.csv "$d"/eval.json "$keep"/
-        [ ! -f "$d/learning_curve.png" ] || cp "$d/learning_curve.png" "$keep"/
+        for f in learning_curve.png launches.jsonl; do [ ! -f "$d/$f" ] || cp "$d/$f" "$keep"/; done
         "$PY" - "$keep/eval.json" "${keep#"$repo"/}" <<'PY'
 import json, sys
 path, run_dir = sys.argv[1:]

@@ -19,7 +19,7 @@ from ttd3_jax.cli.evaluate import main as evaluate_main
 from ttd3_jax.control.closed_loop import evaluate_on_tracks
 from ttd3_jax.control.closed_loop import test_tracks as make_test_tracks
 from ttd3_jax.run import checkpoint as ckpt
-from ttd3_jax.run import rundir
+from ttd3_jax.run import provenance, rundir
 from ttd3_jax.run import spec as sp
 from ttd3_jax.run.loop import LiveBar, TrainingDiverged, check_finite, run
 from ttd3_jax.run.sharding import runner_fns
@@ -79,6 +79,10 @@ def test_a_checkpoint_that_does_not_load_is_skipped_by_resume_and_evaluate(tmp_p
     out = capsys.readouterr().out
     assert "skipped checkpoint 2, which does not load" in out and "resumed" in out and "at epoch 1/3" in out
     assert_same_rows(rundir.read_metrics(full["run_dir"]), rundir.read_metrics(resumed["run_dir"]))
+    # each launch recorded what ran it: the code, JAX, the machine
+    launches = provenance.launches(part)
+    assert [x["launch"] for x in launches] == ["start", "resume"]
+    assert launches[0]["code"] == provenance.code_version() and launches[0]["jax"] == jax.__version__
 
 
 def test_resume_refuses_a_run_without_checkpoints_and_leaves_its_metrics(tmp_path):

@@ -23,7 +23,7 @@ import numpy as np
 
 from ttd3_jax.control.paper import PAPER_TTD3, beats_paper
 from ttd3_jax.run import checkpoint as ckpt
-from ttd3_jax.run import memory, report, rundir, status
+from ttd3_jax.run import memory, provenance, report, rundir, status
 from ttd3_jax.run import spec as sp
 from ttd3_jax.run.cache import StoredProgram, program_store
 from ttd3_jax.run.sharding import runner_fns
@@ -178,6 +178,7 @@ def run(spec: sp.RunSpec | None = None, out: str = "runs", *, resume: str | None
     memory.check(spec, trainer.env.obs_size, trainer.env.action_size, track_rows=rows)  # before any write
     run_dir = resume if resume is not None else rundir.new_run_dir(out, spec)
     with status.writing(run_dir, log):
+        provenance.record(run_dir, "resume" if resume is not None else "start")
         stop = stop or status.Stop()  # (never requested unless the CLI installed it)
         r = _Run(spec=spec, trainer=trainer, run_dir=run_dir, resuming=resume is not None, log=log,
                  verbose=verbose, stages=stages, stop=stop)  # fmt: skip

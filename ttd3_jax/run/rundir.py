@@ -1,7 +1,8 @@
 """A run directory on disk: ``config.json`` (the whole :class:`~ttd3_jax.run.spec.RunSpec`;
 everything that reads a run rebuilds it from this alone), ``metrics.csv`` (one row per epoch
 and seed), ``checkpoints/`` (orbax, the whole train state), ``best/`` (each seed's policy
-selected on the validation tracks), ``eval.json`` and ``learning_curve.png``.
+selected on the validation tracks), ``eval.json``, ``learning_curve.png`` and
+``launches.jsonl`` (the code and machine of each launch: :mod:`ttd3_jax.run.provenance`).
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ from ttd3_jax.checks import writable_dir
 from ttd3_jax.control.closed_loop import policy_controller
 from ttd3_jax.control.evaluator import Build, index
 from ttd3_jax.run import checkpoint as ckpt
+from ttd3_jax.run import provenance, status
 from ttd3_jax.run import spec as sp
-from ttd3_jax.run import status
 from ttd3_jax.run.sharding import per_seed
 from ttd3_jax.sim.config import EnvConfig
 from ttd3_jax.td3 import networks
@@ -85,7 +86,7 @@ def find_run(path: str) -> tuple[str, str | None]:
 
 # what training writes in a run directory, which the readers (evaluate, export) never write over
 OWN_FILES = (CONFIG, "metrics.csv", status.STATE, status.LOCK, "eval.json", "learning_curve.png",
-             ckpt.DIGESTS, ckpt.FILES)  # fmt: skip
+             ckpt.DIGESTS, ckpt.FILES, provenance.FILE)  # fmt: skip
 OWN_FOLDERS = ("checkpoints", "best", "tb")
 
 
