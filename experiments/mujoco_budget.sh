@@ -80,6 +80,7 @@ case $1 in
         rm -rf "$dest/runs/$name" && mkdir -p "$keep"
         cp "$d"/config.json "$d"/metrics.csv "$d"/eval.json "$keep"/
         for f in learning_curve.png launches.jsonl; do [ ! -f "$d/$f" ] || cp "$d/$f" "$keep"/; done
+        (cd "$repo" && "$PY" experiments/current_format.py "$keep/config.json")  # the pinned commit's format
         "$PY" - "$keep/eval.json" "${keep#"$repo"/}" <<'PY'
 import json, sys
 path, run_dir = sys.argv[1:]

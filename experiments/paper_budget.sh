@@ -81,7 +81,8 @@ case $cmd in
       keep=$dest/runs/$(dir_of "$r")
       rm -rf "$keep" && mkdir -p "$keep"
       cp "$d"/config.json "$d"/metrics.csv "$d"/state.json "$d"/eval.json "$keep"/
-      [ ! -f "$d/launches.jsonl" ] || cp "$d/launches.jsonl" "$keep"/  # from 2026-12-07 20:00 on
+      [ ! -f "$d/launches.jsonl" ] || cp "$d/launches.jsonl" "$keep"/  # written from a898951 on
+      (cd "$repo" && "$PY" experiments/current_format.py "$keep/config.json")  # the pinned commit's format
       echo "$r: $d -> ${keep#"$repo"/}"
     done
     if [ -d "$dest/runs/seed1-1e6" ] && [ -d "$dest/runs/seed2-1e6" ]; then
