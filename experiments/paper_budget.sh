@@ -15,13 +15,13 @@
 # has a core to itself, so on a new machine start them first and seed 0 after.
 #
 # Environment (defaults in brackets): LONGRUNS [/work/longruns] holds the run directories, logs
-# and the compilation cache; WORKTREE [/work/lr-paper] the pinned checkout of COMMIT [7c6bdf6];
+# and the compilation cache; WORKTREE [/work/lr-paper] the pinned checkout of COMMIT [4df86f0];
 # PY [the repository's .venv/bin/python] a python with this project's dependencies installed.
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/.." && pwd)
 LONGRUNS=${LONGRUNS:-/work/longruns}
 WORKTREE=${WORKTREE:-/work/lr-paper}
-COMMIT=${COMMIT:-7c6bdf6}
+COMMIT=${COMMIT:-4df86f0}
 PY=${PY:-$repo/.venv/bin/python}
 logs=$LONGRUNS/logs
 ALL=(seed0 seed1 seed2)
