@@ -14,8 +14,8 @@
 #                                              # and rebuild results/mujoco's tables and figure
 #
 # Environment (defaults in brackets): TASKS [ant walker2d inverted_double_pendulum hopper] the
-# tasks start and resume train, in order (each takes about 70 min of one idle core per algorithm;
-# on a new machine, leave out those results/mujoco holds from these runs already); LONGRUNS
+# tasks start and resume train, in order (ant took 2.5 h of one idle core per algorithm on the
+# AVX-512 EPYC; on a new machine, leave out those results/mujoco holds from these runs); LONGRUNS
 # [/work/longruns] holds the output folder (LONGRUNS/mujoco, copied into results/mujoco by
 # collect), logs and the compilation cache;
 # WORKTREE [/work/lr-mujoco] the pinned checkout of COMMIT [7c6bdf6]; PY [the repository's

@@ -11,7 +11,7 @@
 #                                                       # and rebuild its table and curves
 #
 # RUN is seed0 (3e6 transitions, about 7 h of one idle core), seed1 or seed2 (1e6, about 2.5 h
-# each); without one, all three.  Seeds 1 and 2 each fit in one session's three hours when each
+# each; both estimated from benchmarks/trainer_throughput.py's paper case); without one, all three.  Seeds 1 and 2 each fit in one session's three hours when each
 # has a core to itself, so on a new machine start them first and seed 0 after.
 #
 # Environment (defaults in brackets): LONGRUNS [/work/longruns] holds the run directories, logs
