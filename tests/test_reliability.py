@@ -220,6 +220,31 @@ def test_a_failing_background_save_prints_no_closed_event_loop_traceback():
     assert "RuntimeError: another failure" in probe.stderr  # other errors still print
 
 
+HALF_CLOSED_LOOP = """
+import asyncio, gc, sys
+from ttd3_jax.cli import train
+if sys.argv[1] == "quiet":
+    train._quiet_background_failures()
+loop = asyncio.new_event_loop()
+loop._ssock.close()  # where a KeyboardInterrupt inside loop.close() leaves it: socket closed, loop open
+del loop
+gc.collect()
+"""
+
+
+@pytest.mark.parametrize("mode", ["quiet", "plain"])
+def test_a_second_ctrl_c_inside_an_asyncio_loop_close_prints_no_finalizer_traceback(mode):
+    """CI once caught a second SIGTERM landing inside orbax's ``loop.close()``: the loop's
+    ``__del__`` then raised ``Invalid file descriptor: -1`` after the one-line stop message.
+    The train CLI keeps that finalizer's noise off stderr; without it, Python prints it."""
+    probe = subprocess.run(
+        [sys.executable, "-c", HALF_CLOSED_LOOP, mode], capture_output=True, text=True, timeout=120
+    )
+    assert probe.returncode == 0, probe.stderr
+    printed = "Invalid file descriptor" in probe.stderr
+    assert printed == (mode == "plain"), probe.stderr
+
+
 def small_state(seed: int) -> dict:
     rng = np.random.default_rng(seed)
     return {"buffer": rng.standard_normal((256, 8)).astype(np.float32), "step": np.array([seed], np.int32)}

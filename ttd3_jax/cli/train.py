@@ -176,16 +176,21 @@ def _quiet_background_failures() -> None:
     """orbax saves in background threads; when a save fails (a full disk), its threads log
     the error and their asyncio loops print 'Event loop is closed' tracebacks before the
     failure reaches the runner, which reports it in one line.  Keep those off stderr: the
-    loggers at CRITICAL, and a closed event loop's RuntimeError not printed (nothing else is
-    filtered)."""
+    loggers at CRITICAL, a closed event loop's RuntimeError not printed, and nothing from an
+    asyncio loop's finalizer (a second Ctrl-C that lands inside orbax's ``loop.close()``
+    leaves the loop half closed, and its ``__del__`` then fails on the closed descriptor).
+    Nothing else is filtered."""
     for name in ("absl", "asyncio", "concurrent.futures"):
         logging.getLogger(name).setLevel(logging.CRITICAL)
     closed = lambda e: isinstance(e, RuntimeError) and "Event loop is closed" in str(e)  # noqa: E731
+    in_loop_finalizer = lambda args: getattr(args.object, "__qualname__", "") == "BaseEventLoop.__del__"  # noqa: E731
     thread_hook, hook = threading.excepthook, sys.excepthook
     unraisable = sys.unraisablehook  # tensorstore's C++ threads report through this one
     threading.excepthook = lambda args: None if closed(args.exc_value) else thread_hook(args)
     sys.excepthook = lambda kind, value, tb: None if closed(value) else hook(kind, value, tb)
-    sys.unraisablehook = lambda args: None if closed(args.exc_value) else unraisable(args)
+    sys.unraisablehook = lambda args: (
+        None if closed(args.exc_value) or in_loop_finalizer(args) else unraisable(args)
+    )
 
 
 def _chain(e: BaseException):
