@@ -11,8 +11,9 @@
 #                                                       # and rebuild its table and curves
 #
 # RUN is seed0 (3e6 transitions, about 7 h of one idle core), seed1 or seed2 (1e6, about 2.5 h
-# each; both estimated from benchmarks/trainer_throughput.py's paper case); without one, all three.  Seeds 1 and 2 each fit in one session's three hours when each
-# has a core to itself, so on a new machine start them first and seed 0 after.
+# each; both estimated from benchmarks/trainer_throughput.py's paper case); without one, all
+# three.  Seeds 1 and 2 each fit in one session's three hours when each has a core to itself,
+# so on a new machine start them first and seed 0 after.
 #
 # Environment (defaults in brackets): LONGRUNS [/work/longruns] holds the run directories, logs
 # and the compilation cache; WORKTREE [/work/lr-paper] the pinned checkout of COMMIT [4df86f0];
